@@ -1,0 +1,164 @@
+"""The DQN agent: epsilon-greedy acting, the Q-learning update and the target network."""
+
+from __future__ import annotations
+
+import copy
+from typing import Any
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from dqnlab.config import Config
+from dqnlab.envs import Environment
+from dqnlab.errors import DqnlabError
+from dqnlab.networks import build_network
+from dqnlab.optim import build_optimizer
+from dqnlab.replay import Batch
+
+
+def epsilon_at(step: int, config: Config) -> float:
+    """Exploration rate for the action after `step` agent steps.
+
+    1.0 during replay start, then linear to `epsilon_end` over `epsilon_decay_steps`
+    (Lua NeuralQLearner:perceive, ep computed from numSteps - learn_start).
+    """
+    steps_learning = step - config.replay_start_steps
+    if steps_learning < 0:
+        return 1.0  # uniform random policy before learning starts
+    if config.epsilon_decay_steps == 0:
+        return config.epsilon_end
+    progress = min(1.0, steps_learning / config.epsilon_decay_steps)
+    return config.epsilon_start + (config.epsilon_end - config.epsilon_start) * progress
+
+
+def td_loss(
+    online: nn.Module,
+    target: nn.Module,
+    observations: torch.Tensor,
+    actions: torch.Tensor,
+    rewards: torch.Tensor,
+    terminals: torch.Tensor,
+    next_observations: torch.Tensor,
+    discount: float,
+    td_error_clip: float,
+    reduction: str,
+) -> torch.Tensor:
+    """Q-learning loss of one minibatch.
+
+    The Huber loss with threshold `td_error_clip` has the clipped TD error as its gradient,
+    which is exactly the Lua code's clip_delta; summed over the batch as the Lua code
+    accumulates gradients (its RMSProp epsilon assumes that scale).
+    """
+    q_taken = online(observations).gather(1, actions.unsqueeze(1)).squeeze(1)
+    with torch.no_grad():
+        next_q = target(next_observations).max(dim=1).values
+        q_target = rewards + discount * (1.0 - terminals) * next_q
+    if td_error_clip > 0:
+        return F.huber_loss(q_taken, q_target, delta=td_error_clip, reduction=reduction)
+    squared = 0.5 * (q_target - q_taken) ** 2
+    return squared.sum() if reduction == "sum" else squared.mean()
+
+
+class Agent:
+    """Owns the online and target networks and the optimizer; acts and learns."""
+
+    def __init__(
+        self, network: nn.Module, num_actions: int, config: Config, device: torch.device, seed: int
+    ) -> None:
+        self.config = config
+        self.device = device
+        self.num_actions = num_actions
+        self.online = network.to(device)
+        self.target = copy.deepcopy(self.online).requires_grad_(False)
+        self.optimizer = build_optimizer(
+            config.optimizer,
+            self.online.parameters(),
+            learning_rate=config.learning_rate,
+            rmsprop_decay=config.rmsprop_decay,
+            rmsprop_epsilon=config.rmsprop_epsilon,
+            adam_epsilon=config.adam_epsilon,
+        )
+        self.rng = np.random.default_rng(seed)
+        self.updates = 0
+
+    def act(self, stacked_observation: np.ndarray, epsilon: float) -> int:
+        """Epsilon-greedy; ties between best actions go to a random one (Lua greedy)."""
+        if self.rng.random() < epsilon:
+            return int(self.rng.integers(self.num_actions))
+        q_values = self.q_values(stacked_observation[None])[0]
+        best = np.flatnonzero(q_values == q_values.max())
+        return int(best[0] if len(best) == 1 else self.rng.choice(best))
+
+    def q_values(self, stacked_observations: np.ndarray) -> np.ndarray:
+        with torch.inference_mode():
+            inputs = torch.from_numpy(stacked_observations).to(self.device)
+            return self.online(inputs).float().cpu().numpy()
+
+    def update(self, batch: Batch) -> torch.Tensor:
+        """One gradient step on a sampled minibatch; returns the loss (not synchronised)."""
+        device = self.device
+        loss = td_loss(
+            self.online,
+            self.target,
+            torch.from_numpy(batch.observations).to(device),
+            torch.from_numpy(batch.actions).to(device),
+            torch.from_numpy(batch.rewards).to(device),
+            torch.from_numpy(batch.terminals).to(device),
+            torch.from_numpy(batch.next_observations).to(device),
+            self.config.discount,
+            self.config.td_error_clip,
+            self.config.loss_reduction,
+        )
+        self.optimizer.zero_grad(set_to_none=False)
+        loss.backward()
+        self.optimizer.step()
+        self.updates += 1
+        return loss.detach()
+
+    def sync_target(self) -> None:
+        self.target.load_state_dict(self.online.state_dict())
+
+    def state_dict(self) -> dict[str, Any]:
+        return {
+            "online": self.online.state_dict(),
+            "target": self.target.state_dict(),
+            "optimizer": self.optimizer.state_dict(),
+            "rng": self.rng.bit_generator.state,
+            "updates": self.updates,
+        }
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        self.online.load_state_dict(state["online"])
+        self.target.load_state_dict(state["target"])
+        self.optimizer.load_state_dict(state["optimizer"])
+        self.rng.bit_generator.state = state["rng"]
+        self.updates = int(state["updates"])
+
+
+def resolve_device(name: str) -> torch.device:
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if name not in ("cpu", "cuda") and not name.startswith("cuda:"):
+        raise DqnlabError(f"--device {name!r} is not one of: auto, cpu, cuda")
+    if name.startswith("cuda") and not torch.cuda.is_available():
+        raise DqnlabError(f"--device {name} was asked for but no CUDA device is available")
+    return torch.device(name)
+
+
+def is_image_observation(env: Environment) -> bool:
+    return env.observation_dtype == np.uint8 and len(env.observation_shape) >= 2
+
+
+def build_agent(config: Config, env: Environment, device: torch.device, seed: int) -> Agent:
+    """The configured network for this environment, wrapped in an agent."""
+    input_shape = (config.history_length, *env.observation_shape)
+    network = build_network(
+        config.network,
+        input_shape,
+        env.num_actions,
+        is_image_observation(env),
+        config.mlp_hidden_sizes,
+    )
+    return Agent(network, env.num_actions, config, device, seed)

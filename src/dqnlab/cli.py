@@ -1,0 +1,152 @@
+"""The `dqnlab` command: train, evaluate, and list games and presets."""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from dqnlab.errors import DqnlabError
+
+app = typer.Typer(
+    add_completion=False,
+    no_args_is_help=True,
+    pretty_exceptions_enable=False,
+    help="The Nature DQN exactly as DeepMind ran it, on Atari or any discrete-action Gymnasium env.",
+)
+
+
+@app.command()
+def train(
+    env: Annotated[
+        str, typer.Option(help="Atari game (pong), Gymnasium id (CartPole-v1) or module:EnvClass")
+    ],
+    preset: Annotated[
+        str | None,
+        typer.Option(
+            help="nature (Atari default), seed-paper, machado, classic (default otherwise), or a .toml path"
+        ),
+    ] = None,
+    set_: Annotated[
+        list[str] | None,
+        typer.Option("--set", help="Override a setting: KEY=VALUE (repeatable)"),
+    ] = None,
+    steps: Annotated[
+        int | None, typer.Option(help="Training budget in agent steps (total_steps)")
+    ] = None,
+    seed: Annotated[
+        int | None, typer.Option(help="Run seed; every random stream derives from it")
+    ] = None,
+    run_dir: Annotated[
+        Path | None, typer.Option(help="Where the run writes (default runs/ENV-PRESET-sSEED)")
+    ] = None,
+    device: Annotated[str, typer.Option(help="auto, cpu or cuda")] = "auto",
+    force: Annotated[bool, typer.Option(help="Overwrite an existing run directory")] = False,
+    progress: Annotated[bool, typer.Option(help="Show the live progress bar")] = True,
+) -> None:
+    """Train a DQN; writes config, CSV logs, TensorBoard events and checkpoints to the run dir."""
+    from dqnlab.agent import resolve_device
+    from dqnlab.config import parse_overrides, resolve_config
+    from dqnlab.envs import check_env_name, is_atari
+    from dqnlab.train import prepare_run_dir
+    from dqnlab.train import train as run_training
+
+    check_env_name(env)
+    preset = preset or ("nature" if is_atari(env) else "classic")
+    config = resolve_config(
+        preset, parse_overrides(set_ or []), env=env, total_steps=steps, seed=seed
+    )
+    torch_device = resolve_device(device)
+    run_dir = (
+        run_dir
+        or Path("runs")
+        / f"{env.replace(':', '_').replace('/', '_')}-{Path(preset).stem}-s{config.seed}"
+    )
+    prepare_run_dir(run_dir, force)
+    typer.echo(f"dqnlab: training {env} with preset {preset} on {torch_device} into {run_dir}")
+    result = run_training(config, run_dir, torch_device, progress=progress)
+    typer.echo(
+        f"dqnlab: {result.steps} steps, {result.frames} frames in {result.seconds:.0f} s "
+        f"({result.frames_per_second:.0f} frames/s); best evaluation mean {result.best_eval_mean:.2f}"
+    )
+
+
+@app.command()
+def evaluate(
+    run_dir: Annotated[Path, typer.Argument(help="A run directory written by `dqnlab train`")],
+    checkpoint: Annotated[
+        str, typer.Option(help="best, last, or the path of a checkpoint file")
+    ] = "best",
+    episodes: Annotated[
+        int | None, typer.Option(help="Games to play (default: final_eval_episodes, 30)")
+    ] = None,
+    json_path: Annotated[
+        Path | None, typer.Option("--json", help="Write the result as JSON to this file")
+    ] = None,
+    seed: Annotated[int, typer.Option(help="Seed of the evaluation's random streams")] = 12345,
+    device: Annotated[str, typer.Option(help="auto, cpu or cuda")] = "auto",
+) -> None:
+    """The Nature final protocol: games of at most 18,000 frames, epsilon 0.05, no-op starts."""
+    from dqnlab.agent import resolve_device
+    from dqnlab.evaluate import final_evaluation
+
+    result, config, checkpoint_path = final_evaluation(
+        run_dir, checkpoint, episodes, seed, resolve_device(device)
+    )
+    typer.echo(
+        f"{config.env}: {result.mean:.2f} ± {result.std:.2f} over {len(result.scores)} games "
+        f"({checkpoint_path}, {result.frames} frames at {result.frames_per_second:.0f} frames/s)"
+    )
+    if json_path:
+        json_path.write_text(
+            json.dumps(
+                {
+                    "env": config.env,
+                    "checkpoint": str(checkpoint_path),
+                    "episodes": len(result.scores),
+                    "scores": result.scores,
+                    "mean": result.mean,
+                    "std": result.std,
+                    "frames": result.frames,
+                    "frames_per_second": result.frames_per_second,
+                },
+                indent=2,
+            )
+            + "\n"
+        )
+
+
+@app.command()
+def games() -> None:
+    """List the Atari games ale-py ships (names accepted by --env)."""
+    from dqnlab.envs.atari import game_names
+
+    typer.echo(" ".join(game_names()))
+
+
+@app.command()
+def presets(
+    name: Annotated[str | None, typer.Argument(help="Print this preset's TOML")] = None,
+) -> None:
+    """List the shipped presets, or print one (copy it, edit it, pass its path to --preset)."""
+    from importlib import resources
+
+    from dqnlab.config import load_preset, preset_names
+
+    if name is None:
+        typer.echo(" ".join(preset_names()))
+        return
+    load_preset(name)  # validates the name
+    typer.echo(resources.files("dqnlab").joinpath("presets", f"{name}.toml").read_text(), nl=False)
+
+
+def main() -> None:
+    """Entry point: a DqnlabError ends the command with one line and exit status 2."""
+    try:
+        app()
+    except DqnlabError as error:
+        print(f"dqnlab: error: {error}", file=sys.stderr)
+        sys.exit(2)

@@ -1,0 +1,257 @@
+"""Typed, validated configuration and the presets that fill it.
+
+Every faithful detail of the Nature DQN is one field of `Config`; the `nature` preset
+(`presets/nature.toml`) sets each to DeepMind's value. Units are part of every name:
+a *frame* is one raw emulator frame, a *step* is one agent decision.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import difflib
+import sys
+import typing
+from dataclasses import dataclass, field
+from importlib import resources
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover
+    import tomli as tomllib
+
+from dqnlab.errors import ConfigError
+
+
+def _setting(default: Any, doc: str) -> Any:
+    return field(default=default, metadata={"doc": doc})
+
+
+@dataclass(frozen=True)
+class Config:
+    """One run's settings. Build with `resolve_config`, which validates every field."""
+
+    # Environment.
+    env: str = _setting("", "Atari game as ale-py names it, a Gymnasium id, or module:EnvClass")
+    seed: int = _setting(0, "Seeds every random stream (Python, NumPy, PyTorch, environments)")
+    # Atari pipeline (ignored for other environments).
+    action_repeat_frames: int = _setting(4, "Raw frames each agent action is repeated for")
+    frame_pooling: str = _setting(
+        "max_rgb", "max_rgb: max of the last two RGB frames, then luminance; none: last frame"
+    )
+    resize_interpolation: str = _setting("area", "area or bilinear resize of the whole frame")
+    screen_size: int = _setting(84, "Side of the square observation in pixels")
+    noop_max_frames: int = _setting(30, "Random raw no-op frames at episode start: 1..this")
+    sticky_action_probability: float = _setting(0.0, "ALE repeat_action_probability")
+    full_action_space: bool = _setting(False, "All 18 actions instead of the game's minimal set")
+    life_loss_terminal: bool = _setting(
+        True, "In training a lost life ends the episode for the TD target; the game continues"
+    )
+    max_episode_frames: int = _setting(0, "Training episode cap in raw frames (0: no cap)")
+    reward_clip: float = _setting(1.0, "Rewards for learning are clipped to [-x, x] (0: off)")
+    # Observation history and network.
+    history_length: int = _setting(4, "Agent observations stacked into one network input")
+    network: str = _setting("auto", "auto, nature_cnn, mlp, or module:factory(obs_shape, n)")
+    mlp_hidden_sizes: tuple[int, ...] = _setting((256, 256), "Hidden layer widths of the MLP")
+    # Replay memory.
+    replay_capacity: int = _setting(1_000_000, "Transitions held in replay memory")
+    replay_start_steps: int = _setting(50_000, "Uniform random steps before the first update")
+    batch_size: int = _setting(32, "Transitions per gradient step, uniform with replacement")
+    # Learning.
+    update_period_steps: int = _setting(4, "Agent steps between gradient steps")
+    target_update_steps: int = _setting(10_000, "Agent steps between target network copies")
+    discount: float = _setting(0.99, "Discount factor gamma")
+    td_error_clip: float = _setting(1.0, "TD error clipped to [-x, x] in the gradient (0: off)")
+    loss_reduction: str = _setting("sum", "sum (DeepMind's Lua code) or mean over the batch")
+    optimizer: str = _setting("deepmind_rmsprop", "deepmind_rmsprop, rmsprop or adam")
+    learning_rate: float = _setting(0.00025, "Optimizer learning rate (constant)")
+    rmsprop_decay: float = _setting(0.95, "RMSProp moving-average decay")
+    rmsprop_epsilon: float = _setting(0.01, "RMSProp epsilon (inside the sqrt for DeepMind's)")
+    adam_epsilon: float = _setting(0.00015, "Adam epsilon")
+    # Exploration.
+    epsilon_start: float = _setting(1.0, "Epsilon at the end of the replay-start phase")
+    epsilon_end: float = _setting(0.1, "Epsilon after the anneal")
+    epsilon_decay_steps: int = _setting(1_000_000, "Agent steps of the linear epsilon anneal")
+    # Evaluation.
+    eval_epsilon: float = _setting(0.05, "Epsilon while evaluating")
+    eval_period_steps: int = _setting(250_000, "Training steps between periodic evaluations")
+    eval_steps: int = _setting(125_000, "Agent steps of one periodic evaluation")
+    eval_max_episode_frames: int = _setting(
+        0, "Episode cap in raw frames during periodic evaluation (0: none)"
+    )
+    final_eval_episodes: int = _setting(30, "Episodes of the final evaluation")
+    final_eval_max_episode_frames: int = _setting(
+        18_000, "Episode cap of the final evaluation in raw frames (5 minutes)"
+    )
+    # Budget.
+    total_steps: int = _setting(50_000_000, "Training budget in agent steps")
+
+    def __post_init__(self) -> None:
+        _validate(self)
+
+    def to_dict(self) -> dict[str, Any]:
+        values = dataclasses.asdict(self)
+        values["mlp_hidden_sizes"] = list(self.mlp_hidden_sizes)
+        return values
+
+
+FIELD_NAMES = tuple(f.name for f in dataclasses.fields(Config))
+_CHOICES = {
+    "frame_pooling": ("max_rgb", "none"),
+    "resize_interpolation": ("area", "bilinear"),
+    "loss_reduction": ("sum", "mean"),
+    "optimizer": ("deepmind_rmsprop", "rmsprop", "adam"),
+}
+
+
+def _validate(config: Config) -> None:
+    for name, choices in _CHOICES.items():
+        value = getattr(config, name)
+        if value not in choices:
+            raise ConfigError(f"{name} = {value!r} is not one of: {', '.join(choices)}")
+    positive = (
+        "action_repeat_frames", "screen_size", "history_length", "replay_capacity",
+        "batch_size", "update_period_steps", "target_update_steps", "learning_rate",
+        "eval_period_steps", "eval_steps", "final_eval_episodes", "total_steps",
+    )  # fmt: skip
+    for name in positive:
+        if getattr(config, name) <= 0:
+            raise ConfigError(f"{name} = {getattr(config, name)} must be positive")
+    non_negative = (
+        "noop_max_frames", "max_episode_frames", "reward_clip", "replay_start_steps",
+        "td_error_clip", "epsilon_decay_steps", "eval_max_episode_frames",
+        "final_eval_max_episode_frames", "rmsprop_epsilon", "adam_epsilon",
+    )  # fmt: skip
+    for name in non_negative:
+        if getattr(config, name) < 0:
+            raise ConfigError(f"{name} = {getattr(config, name)} must be zero or more")
+    unit_interval = (
+        "sticky_action_probability", "discount", "epsilon_start", "epsilon_end", "eval_epsilon",
+    )  # fmt: skip
+    for name in unit_interval:
+        if not 0.0 <= getattr(config, name) <= 1.0:
+            raise ConfigError(f"{name} = {getattr(config, name)} must be between 0 and 1")
+    if not 0.0 <= config.rmsprop_decay < 1.0:
+        raise ConfigError(f"rmsprop_decay = {config.rmsprop_decay} must be in [0, 1)")
+    if config.batch_size > config.replay_capacity:
+        raise ConfigError(
+            f"batch_size = {config.batch_size} exceeds replay_capacity = {config.replay_capacity}"
+        )
+    if any(width <= 0 for width in config.mlp_hidden_sizes):
+        raise ConfigError(f"mlp_hidden_sizes = {list(config.mlp_hidden_sizes)} must be positive")
+
+
+def derive_seeds(seed: int, count: int) -> list[int]:
+    """Independent child seeds for each random stream, all from the one run seed."""
+    return [int(s.generate_state(1)[0]) for s in np.random.SeedSequence(seed).spawn(count)]
+
+
+# Presets ------------------------------------------------------------------------------
+
+
+def preset_names() -> list[str]:
+    files = resources.files("dqnlab").joinpath("presets").iterdir()
+    return sorted(f.name.removesuffix(".toml") for f in files if f.name.endswith(".toml"))
+
+
+def load_preset(name_or_path: str) -> dict[str, Any]:
+    """Read a preset by name (shipped in the package) or from a TOML file path."""
+    path = Path(name_or_path)
+    if name_or_path.endswith(".toml") and path.is_file():
+        text = path.read_text()
+    elif name_or_path in preset_names():
+        text = resources.files("dqnlab").joinpath("presets", f"{name_or_path}.toml").read_text()
+    else:
+        raise ConfigError(
+            f"unknown preset {name_or_path!r}; accepted: {', '.join(preset_names())} "
+            "or the path of a .toml file"
+        )
+    values = tomllib.loads(text)
+    _check_names(values, f"preset {name_or_path!r}")
+    return values
+
+
+def _check_names(values: dict[str, Any], where: str) -> None:
+    for name in values:
+        if name not in FIELD_NAMES:
+            close = difflib.get_close_matches(name, FIELD_NAMES, n=3)
+            hint = f"; did you mean {', '.join(close)}?" if close else ""
+            raise ConfigError(f"unknown setting {name!r} in {where}{hint}")
+
+
+def parse_overrides(pairs: list[str]) -> dict[str, Any]:
+    """Parse `key=value` strings; values are read as TOML, else taken as plain strings."""
+    values: dict[str, Any] = {}
+    for pair in pairs:
+        key, sep, raw = pair.partition("=")
+        key = key.strip()
+        if not sep or not key:
+            raise ConfigError(f"--set expects KEY=VALUE, got {pair!r}")
+        try:
+            values[key] = tomllib.loads(f"value = {raw.strip()}")["value"]
+        except tomllib.TOMLDecodeError:
+            values[key] = raw.strip()
+    _check_names(values, "--set")
+    return values
+
+
+def _coerce(name: str, value: Any) -> Any:
+    """Convert a value read from TOML or the command line to the field's declared type."""
+    expected = typing.get_type_hints(Config)[name]
+    try:
+        if expected is bool:
+            if isinstance(value, str) and value.lower() in ("true", "false"):
+                return value.lower() == "true"
+            if not isinstance(value, bool):
+                raise TypeError
+            return value
+        if expected is int:
+            if isinstance(value, bool) or (isinstance(value, float) and not value.is_integer()):
+                raise TypeError
+            return int(value)
+        if expected is float:
+            if isinstance(value, bool):
+                raise TypeError
+            return float(value)
+        if expected is str:
+            return str(value)
+        # tuple[int, ...]
+        if isinstance(value, (int, str)) and not isinstance(value, bool):
+            value = [int(v) for v in str(value).split(",") if v.strip()]
+        return tuple(int(v) for v in value)
+    except (TypeError, ValueError):
+        type_name = getattr(expected, "__name__", str(expected))
+        raise ConfigError(f"{name} = {value!r} is not a valid {type_name}") from None
+
+
+def resolve_config(preset: str, overrides: dict[str, Any] | None = None, **explicit: Any) -> Config:
+    """The preset's values, then `overrides` (from --set), then explicit non-None arguments."""
+    values = load_preset(preset)
+    values.update(overrides or {})
+    values.update({k: v for k, v in explicit.items() if v is not None})
+    _check_names(values, "the configuration")
+    return Config(**{name: _coerce(name, value) for name, value in values.items()})
+
+
+def config_from_dict(values: dict[str, Any]) -> Config:
+    _check_names(values, "the saved configuration")
+    return Config(**{name: _coerce(name, value) for name, value in values.items()})
+
+
+def config_to_toml(config: Config) -> str:
+    lines = ["# Resolved dqnlab configuration of this run."]
+    for f in dataclasses.fields(Config):
+        value = getattr(config, f.name)
+        if isinstance(value, bool):
+            text = "true" if value else "false"
+        elif isinstance(value, str):
+            text = '"' + value.replace("\\", "\\\\").replace('"', '\\"') + '"'
+        elif isinstance(value, tuple):
+            text = "[" + ", ".join(str(v) for v in value) + "]"
+        else:
+            text = repr(value)
+        lines.append(f"{f.name} = {text}  # {f.metadata['doc']}")
+    return "\n".join(lines) + "\n"

@@ -1,0 +1,90 @@
+"""Any Gymnasium environment with a Discrete action space, seen through dqnlab's env API."""
+
+from __future__ import annotations
+
+import gymnasium as gym
+import numpy as np
+
+from dqnlab.errors import EnvironmentError_
+
+
+def observation_layout(space: gym.Space) -> tuple[tuple[int, ...], np.dtype, bool]:
+    """(stored frame shape, dtype, channels-last image?) for an observation space."""
+    if not isinstance(space, gym.spaces.Box):
+        raise EnvironmentError_(
+            f"observation space {space} is not supported; dqnlab accepts Box observations "
+            "(vectors, or images of shape (H, W) or (H, W, C))"
+        )
+    shape = tuple(int(n) for n in space.shape)
+    if space.dtype == np.uint8 and len(shape) == 3:
+        height, width, channels = shape
+        return (channels, height, width), np.dtype(np.uint8), True
+    if space.dtype == np.uint8 and len(shape) == 2:
+        return shape, np.dtype(np.uint8), False
+    if len(shape) == 1:
+        return shape, np.dtype(np.float32), False
+    raise EnvironmentError_(
+        f"observation space {space} is not supported; dqnlab accepts 1-D vectors or uint8 "
+        "images of shape (H, W) or (H, W, C)"
+    )
+
+
+class GymnasiumEnv:
+    """Wraps a Gymnasium env: float32 vectors, or uint8 images moved to channels-first."""
+
+    def __init__(self, env: gym.Env, *, seed: int, max_episode_steps: int = 0) -> None:
+        if not isinstance(env.action_space, gym.spaces.Discrete):
+            raise EnvironmentError_(
+                f"action space {env.action_space} is not supported; "
+                "DQN needs a Discrete action space"
+            )
+        self.env = env
+        self.observation_shape, self.observation_dtype, self._channels_last = observation_layout(
+            env.observation_space
+        )
+        self.num_actions = int(env.action_space.n)
+        self._action_start = int(env.action_space.start)
+        meanings = getattr(env.unwrapped, "get_action_meanings", None)
+        self.action_names = (
+            list(meanings()) if meanings else [str(a) for a in range(self.num_actions)]
+        )
+        self.max_episode_steps = max_episode_steps
+        self._seed: int | None = seed
+        self._episode_steps = 0
+        self._observation = np.zeros(self.observation_shape, dtype=self.observation_dtype)
+        self.frames = 0  # for a non-Atari environment a frame is a step
+        self.game_over = True
+        self.truncated = False
+
+    @property
+    def game_ended(self) -> bool:
+        return self.game_over or self.truncated
+
+    def _convert(self, observation: np.ndarray) -> np.ndarray:
+        array = np.asarray(observation)
+        if self._channels_last:
+            array = array.transpose(2, 0, 1)
+        self._observation[...] = array
+        return self._observation
+
+    def reset(self, new_game: bool = False) -> np.ndarray:
+        """A new episode (every Gymnasium reset is a new game)."""
+        observation, _ = self.env.reset(seed=self._seed)
+        self._seed = None  # seed once; later resets continue the seeded stream
+        self._episode_steps = 0
+        self.game_over = False
+        self.truncated = False
+        return self._convert(observation)
+
+    def step(self, action: int) -> tuple[np.ndarray, float, bool, bool]:
+        observation, reward, terminated, truncated, _ = self.env.step(action + self._action_start)
+        self._episode_steps += 1
+        self.frames += 1
+        if self.max_episode_steps and self._episode_steps >= self.max_episode_steps:
+            truncated = True
+        self.game_over = bool(terminated)
+        self.truncated = bool(truncated) and not terminated
+        return self._convert(observation), float(reward), bool(terminated), self.truncated
+
+    def close(self) -> None:
+        self.env.close()

@@ -1,0 +1,205 @@
+"""Replay memory: preallocated, each frame stored once, histories stacked when sampled.
+
+Slot i holds the observation o_t, the action a_t taken from it, the reward r_t that
+followed and whether that transition ended in a terminal state. The next observation
+o_{t+1} is slot i+1. The last observation of every episode gets a slot of its own,
+marked `is_last`, from which no transition starts: it is the bootstrap state of a
+truncated episode and the (masked) next state of a terminal one. A network input is the
+last `history_length` observations of one episode; older slots across an `is_last`
+boundary are zeros, as at an episode start while acting (`FrameHistory`).
+
+Memory per transition is one frame plus 10 bytes (action, reward, two flags): a 1M Atari
+replay is 7.07 GB, like the Lua code's byte tensor (TransitionTable.lua).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import psutil
+
+from dqnlab.errors import ResourceError
+
+_SLOT_OVERHEAD_BYTES = 4 + 4 + 1 + 1  # action int32, reward float32, terminal, is_last
+
+
+def replay_bytes(capacity: int, frame_shape: tuple[int, ...], frame_dtype: np.dtype) -> int:
+    frame_bytes = int(np.prod(frame_shape)) * np.dtype(frame_dtype).itemsize
+    return capacity * (frame_bytes + _SLOT_OVERHEAD_BYTES)
+
+
+def check_memory(required_bytes: int, what: str) -> None:
+    available = psutil.virtual_memory().available
+    if required_bytes > available:
+        raise ResourceError(
+            f"{what} needs {required_bytes / 2**30:.2f} GiB but only "
+            f"{available / 2**30:.2f} GiB of memory is available; lower replay_capacity"
+        )
+
+
+@dataclass
+class Batch:
+    """Views into the memory's reusable sampling buffers: valid until the next sample."""
+
+    observations: np.ndarray  # (batch, history, *frame_shape)
+    actions: np.ndarray  # (batch,) int64
+    rewards: np.ndarray  # (batch,) float32
+    terminals: np.ndarray  # (batch,) float32, 1.0 where the next state is terminal
+    next_observations: np.ndarray  # (batch, history, *frame_shape)
+
+
+class ReplayMemory:
+    def __init__(
+        self,
+        capacity: int,
+        frame_shape: tuple[int, ...],
+        frame_dtype: np.dtype | type,
+        history_length: int,
+        batch_size: int,
+        seed: int,
+    ) -> None:
+        frame_dtype = np.dtype(frame_dtype)
+        check_memory(replay_bytes(capacity, frame_shape, frame_dtype), "the replay memory")
+        self.capacity = capacity
+        self.history_length = history_length
+        self.batch_size = batch_size
+        self.frame_shape = tuple(frame_shape)
+        self.frames = np.zeros((capacity, *frame_shape), dtype=frame_dtype)
+        self.actions = np.zeros(capacity, dtype=np.int32)
+        self.rewards = np.zeros(capacity, dtype=np.float32)
+        self.terminals = np.zeros(capacity, dtype=np.bool_)
+        self.is_last = np.zeros(capacity, dtype=np.bool_)
+        self.position = 0  # next slot to write
+        self.size = 0
+        self.rng = np.random.default_rng(seed)
+        # Sampling buffers, reused by every call: a window of history + 1 slots per sample.
+        window = history_length + 1
+        self._offsets = np.arange(-history_length + 1, 2, dtype=np.int64)
+        self._window = np.zeros((batch_size, window, *frame_shape), dtype=frame_dtype)
+        self._slots = np.zeros((batch_size, window), dtype=np.int64)
+        self._mask = np.ones((batch_size, window), dtype=np.bool_)
+        self._batch = Batch(
+            observations=self._window[:, :history_length],
+            actions=np.zeros(batch_size, dtype=np.int64),
+            rewards=np.zeros(batch_size, dtype=np.float32),
+            terminals=np.zeros(batch_size, dtype=np.float32),
+            next_observations=self._window[:, 1:],
+        )
+
+    @property
+    def bytes_per_transition(self) -> float:
+        return replay_bytes(1, self.frame_shape, self.frames.dtype)
+
+    # Writing --------------------------------------------------------------------------
+
+    def add(self, observation: np.ndarray, action: int, reward: float, terminal: bool) -> None:
+        """Store o_t, a_t, r_t and whether o_{t+1} is terminal."""
+        self._write(observation, action, reward, terminal, is_last=False)
+
+    def add_last(self, observation: np.ndarray) -> None:
+        """Store the final observation of an episode (terminal or truncated)."""
+        self._write(observation, 0, 0.0, False, is_last=True)
+
+    def _write(
+        self, observation: np.ndarray, action: int, reward: float, terminal: bool, is_last: bool
+    ) -> None:
+        slot = self.position
+        self.frames[slot] = observation
+        self.actions[slot] = action
+        self.rewards[slot] = reward
+        self.terminals[slot] = terminal
+        self.is_last[slot] = is_last
+        self.position = (slot + 1) % self.capacity
+        self.size = min(self.size + 1, self.capacity)
+
+    # Sampling -------------------------------------------------------------------------
+
+    def _valid(self, slots: np.ndarray) -> np.ndarray:
+        """Which slots can start a sampled transition."""
+        newest = (self.position - 1) % self.capacity
+        valid = ~self.is_last[slots] & (slots != newest)  # o_{t+1} must be stored already
+        if self.size == self.capacity:
+            # The oldest slots' histories reach back into overwritten (newest) data.
+            age = (slots - self.position) % self.capacity
+            valid &= age >= self.history_length - 1
+        return valid
+
+    def sample_indices(self, count: int) -> np.ndarray:
+        """Uniform with replacement over valid transitions, by rejection (as the Lua code)."""
+        if self.size < 2 or not self._valid(np.arange(self.size)).any():
+            raise RuntimeError("the replay memory holds no complete transition yet")
+        indices = np.empty(count, dtype=np.int64)
+        filled = 0
+        while filled < count:
+            candidates = self.rng.integers(0, self.size, size=2 * (count - filled))
+            accepted = candidates[self._valid(candidates)][: count - filled]
+            indices[filled : filled + len(accepted)] = accepted
+            filled += len(accepted)
+        return indices
+
+    def sample(self) -> Batch:
+        return self.gather(self.sample_indices(self.batch_size))
+
+    def gather(self, indices: np.ndarray) -> Batch:
+        """Stack the histories of transitions starting at `indices` (len == batch_size)."""
+        history = self.history_length
+        raw_slots = indices[:, None] + self._offsets
+        np.remainder(raw_slots, self.capacity, out=self._slots)
+        # A frame of the window is kept only if no episode ended between it and the
+        # transition's own observation (window position history - 1).
+        mask = self._mask
+        mask[:, history - 1 :] = True
+        for j in range(history - 2, -1, -1):
+            mask[:, j] = mask[:, j + 1] & ~self.is_last[self._slots[:, j]]
+            if self.size < self.capacity:  # before the first write there is nothing
+                mask[:, j] &= raw_slots[:, j] >= 0
+        np.take(self.frames, self._slots, axis=0, out=self._window)
+        if not mask.all():
+            self._window[~mask] = 0
+        batch = self._batch
+        batch.actions[:] = self.actions[indices]
+        batch.rewards[:] = self.rewards[indices]
+        batch.terminals[:] = self.terminals[indices]
+        return batch
+
+    # State ----------------------------------------------------------------------------
+
+    def state_dict(self) -> dict[str, Any]:
+        return {
+            "frames": self.frames,
+            "actions": self.actions,
+            "rewards": self.rewards,
+            "terminals": self.terminals,
+            "is_last": self.is_last,
+            "position": self.position,
+            "size": self.size,
+            "rng": self.rng.bit_generator.state,
+        }
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        for name in ("frames", "actions", "rewards", "terminals", "is_last"):
+            getattr(self, name)[...] = state[name]
+        self.position = int(state["position"])
+        self.size = int(state["size"])
+        self.rng.bit_generator.state = state["rng"]
+
+
+class FrameHistory:
+    """The last `history_length` observations of the current episode, zeros before its start."""
+
+    def __init__(self, history_length: int, frame_shape: tuple[int, ...], dtype: np.dtype) -> None:
+        self.frames = np.zeros((history_length, *frame_shape), dtype=dtype)
+
+    def reset(self, observation: np.ndarray) -> None:
+        self.frames.fill(0)
+        self.frames[-1] = observation
+
+    def push(self, observation: np.ndarray) -> None:
+        self.frames[:-1] = self.frames[1:]
+        self.frames[-1] = observation
+
+    @property
+    def newest(self) -> np.ndarray:
+        return self.frames[-1]

@@ -1,0 +1,216 @@
+"""The training loop: the Nature DQN algorithm, one agent step at a time.
+
+Per step, in the order of DeepMind's Lua code (train_agent.lua, NeuralQLearner:perceive):
+act epsilon-greedily with the current network, repeat the action in the environment,
+store the transition, then every `update_period_steps` (once past `replay_start_steps`)
+take one gradient step, and every `target_update_steps` copy the online network into the
+target network. Every `eval_period_steps` the network is evaluated and the best one kept.
+"""
+
+from __future__ import annotations
+
+import random
+import shutil
+import time
+from collections import deque
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from dqnlab import checkpoints
+from dqnlab.agent import build_agent, epsilon_at
+from dqnlab.config import Config, config_to_toml, derive_seeds
+from dqnlab.envs import make_env
+from dqnlab.errors import DqnlabError
+from dqnlab.evaluate import CONFIG_FILE, EvaluationResult, play
+from dqnlab.logs import RunLogger
+from dqnlab.replay import FrameHistory, ReplayMemory
+
+
+def prepare_run_dir(run_dir: Path, force: bool) -> None:
+    if run_dir.exists() and any(run_dir.iterdir()):
+        if not force:
+            raise DqnlabError(
+                f"run directory {run_dir} already exists and is not empty; "
+                "choose another --run-dir or pass --force to overwrite it"
+            )
+        shutil.rmtree(run_dir)
+    run_dir.mkdir(parents=True, exist_ok=True)
+
+
+@dataclass
+class TrainResult:
+    steps: int
+    frames: int
+    seconds: float
+    best_eval_mean: float
+    evaluations: list[tuple[int, float]]
+
+    @property
+    def frames_per_second(self) -> float:
+        return self.frames / self.seconds if self.seconds > 0 else 0.0
+
+
+def train(
+    config: Config,
+    run_dir: Path,
+    device: torch.device,
+    progress: bool = True,
+    tensorboard: bool = True,
+) -> TrainResult:
+    """Train from scratch into `run_dir` (created by the caller with `prepare_run_dir`)."""
+    seeds = derive_seeds(config.seed, 6)
+    random.seed(seeds[0])
+    torch.manual_seed(seeds[1])
+    env = make_env(config, training=True, seed=seeds[2])
+    eval_env = make_env(
+        config, training=False, seed=seeds[3], max_episode_frames=config.eval_max_episode_frames
+    )
+    agent = build_agent(config, env, device, seeds[4])
+    replay = ReplayMemory(
+        config.replay_capacity,
+        env.observation_shape,
+        env.observation_dtype,
+        config.history_length,
+        config.batch_size,
+        seeds[5],
+    )
+    (run_dir / CONFIG_FILE).write_text(config_to_toml(config))
+    logger = RunLogger(run_dir, tensorboard=tensorboard)
+    history = FrameHistory(config.history_length, env.observation_shape, env.observation_dtype)
+    metadata = {
+        "config": config.to_dict(),
+        "input_shape": (config.history_length, *env.observation_shape),
+        "action_names": env.action_names,
+    }
+
+    reward_clip = config.reward_clip
+    best_mean = -float("inf")
+    evaluations: list[tuple[int, float]] = []
+    recent_scores: deque[float] = deque(maxlen=20)
+    episodes = 0
+    game_score = 0.0
+    game_steps = 0
+    loss_sum = torch.zeros((), device=device)
+    losses = 0
+    start = time.perf_counter()
+    bar = tqdm(total=config.total_steps, disable=not progress, unit="step", smoothing=0.05)
+    last_eval_text = "-"
+
+    history.reset(env.reset())
+    for step in range(1, config.total_steps + 1):
+        epsilon = epsilon_at(step - 1, config)
+        action = agent.act(history.frames, epsilon)
+        observation, reward, terminated, truncated = env.step(action)
+        learn_reward = max(-reward_clip, min(reward_clip, reward)) if reward_clip else reward
+        replay.add(history.newest, action, learn_reward, terminated)
+        game_score += reward
+        game_steps += 1
+        if terminated or truncated:
+            replay.add_last(observation)
+            if env.game_ended:
+                episodes += 1
+                recent_scores.append(game_score)
+                logger.episode(
+                    {
+                        "step": step,
+                        "frames": env.frames,
+                        "episode": episodes,
+                        "score": game_score,
+                        "steps": game_steps,
+                        "epsilon": round(epsilon, 6),
+                        "wall_seconds": round(time.perf_counter() - start, 3),
+                    }
+                )
+                game_score = 0.0
+                game_steps = 0
+            history.reset(env.reset())
+        else:
+            history.push(observation)
+
+        if step > config.replay_start_steps and step % config.update_period_steps == 0:
+            loss_sum += agent.update(replay.sample())
+            losses += 1
+        if step % config.target_update_steps == 0:
+            agent.sync_target()
+
+        if step % config.eval_period_steps == 0 and step > config.replay_start_steps:
+            result = play(
+                agent,
+                eval_env,
+                config.history_length,
+                config.eval_epsilon,
+                max_steps=config.eval_steps,
+            )
+            result_mean = _periodic_mean(result)
+            is_best = result_mean > best_mean
+            if is_best:
+                best_mean = result_mean
+                checkpoints.save(
+                    run_dir / "checkpoints" / "best.pt",
+                    {**metadata, "step": step, "eval_mean": result_mean,
+                     "network": agent.online.state_dict()},
+                )  # fmt: skip
+            evaluations.append((step, result_mean))
+            logger.evaluation(
+                {
+                    "step": step,
+                    "frames": env.frames,
+                    "mean": result_mean,
+                    "std": result.std,
+                    "episodes": len(result.scores),
+                    "steps": result.steps,
+                    "best_mean": best_mean,
+                    "frames_per_second": round(result.frames_per_second, 1),
+                    "wall_seconds": round(time.perf_counter() - start, 3),
+                }
+            )
+            checkpoints.save(
+                run_dir / "checkpoints" / "last.pt",
+                {**metadata, "step": step, "agent": agent.state_dict()},
+            )
+            last_eval_text = f"{result_mean:.1f}"
+
+        if step % 1000 == 0:
+            elapsed = time.perf_counter() - start
+            scalars = {"train/epsilon": epsilon, "train/frames_per_second": env.frames / elapsed}
+            if losses:
+                scalars["train/loss"] = float(loss_sum) / losses
+                loss_sum.zero_()
+                losses = 0
+            logger.scalars(step, scalars)
+            if progress:
+                bar.update(1000)
+                bar.set_postfix(
+                    fps=f"{env.frames / elapsed:.0f}",
+                    eps=f"{epsilon:.3f}",
+                    score=f"{np.mean(recent_scores):.1f}" if recent_scores else "-",
+                    eval=last_eval_text,
+                    refresh=False,
+                )
+    bar.close()
+    seconds = time.perf_counter() - start
+    checkpoints.save(
+        run_dir / "checkpoints" / "last.pt",
+        {**metadata, "step": config.total_steps, "agent": agent.state_dict()},
+    )
+    if not (run_dir / "checkpoints" / "best.pt").exists():
+        # No periodic evaluation happened (a very short run): the final network stands in.
+        checkpoints.save(
+            run_dir / "checkpoints" / "best.pt",
+            {**metadata, "step": config.total_steps, "eval_mean": float("nan"),
+             "network": agent.online.state_dict()},
+        )  # fmt: skip
+    logger.close()
+    env.close()
+    eval_env.close()
+    return TrainResult(config.total_steps, env.frames, seconds, best_mean, evaluations)
+
+
+def _periodic_mean(result: EvaluationResult) -> float:
+    """Mean of the finished games; with none finished, the score of the one cut short
+    counts as a single game so a very good agent that never loses is not scored NaN."""
+    return result.mean if result.scores else result.unfinished_score
