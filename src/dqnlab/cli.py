@@ -70,7 +70,8 @@ def train(
     result = run_training(config, run_dir, torch_device, progress=progress)
     typer.echo(
         f"dqnlab: {result.steps} steps, {result.frames} frames in {result.seconds:.0f} s "
-        f"({result.frames_per_second:.0f} frames/s); best evaluation mean {result.best_eval_mean:.2f}"
+        f"({result.frames_per_second:.0f} frames/s overall, {result.learning_frames_per_second:.0f} "
+        f"once learning); best evaluation mean {result.best_eval_mean:.2f}"
     )
 
 

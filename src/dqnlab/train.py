@@ -46,6 +46,7 @@ class TrainResult:
     steps: int
     frames: int
     seconds: float
+    learning_frames_per_second: float  # after replay start, evaluations included
     best_eval_mean: float
     evaluations: list[tuple[int, float]]
 
@@ -99,6 +100,8 @@ def train(
     start = time.perf_counter()
     bar = tqdm(total=config.total_steps, disable=not progress, unit="step", smoothing=0.05)
     last_eval_text = "-"
+    window_start, window_frames = start, 0
+    learning_start, learning_frames = start, 0  # reset when learning starts
 
     history.reset(env.reset())
     for step in range(1, config.total_steps + 1):
@@ -175,8 +178,10 @@ def train(
             last_eval_text = f"{result_mean:.1f}"
 
         if step % 1000 == 0:
-            elapsed = time.perf_counter() - start
-            scalars = {"train/epsilon": epsilon, "train/frames_per_second": env.frames / elapsed}
+            now = time.perf_counter()
+            frames_per_second = (env.frames - window_frames) / (now - window_start)
+            window_start, window_frames = now, env.frames
+            scalars = {"train/epsilon": epsilon, "train/frames_per_second": frames_per_second}
             if losses:
                 scalars["train/loss"] = float(loss_sum) / losses
                 loss_sum.zero_()
@@ -185,14 +190,18 @@ def train(
             if progress:
                 bar.update(1000)
                 bar.set_postfix(
-                    fps=f"{env.frames / elapsed:.0f}",
+                    fps=f"{frames_per_second:.0f}",
                     eps=f"{epsilon:.3f}",
                     score=f"{np.mean(recent_scores):.1f}" if recent_scores else "-",
                     eval=last_eval_text,
                     refresh=False,
                 )
+        if step == config.replay_start_steps:
+            learning_start, learning_frames = time.perf_counter(), env.frames
     bar.close()
-    seconds = time.perf_counter() - start
+    end = time.perf_counter()
+    learning_seconds = end - learning_start
+    learning_fps = (env.frames - learning_frames) / learning_seconds if learning_seconds else 0.0
     checkpoints.save(
         run_dir / "checkpoints" / "last.pt",
         {**metadata, "step": config.total_steps, "agent": agent.state_dict()},
@@ -207,10 +216,12 @@ def train(
     logger.close()
     env.close()
     eval_env.close()
-    return TrainResult(config.total_steps, env.frames, seconds, best_mean, evaluations)
+    return TrainResult(
+        config.total_steps, env.frames, end - start, learning_fps, best_mean, evaluations
+    )
 
 
 def _periodic_mean(result: EvaluationResult) -> float:
-    """Mean of the finished games; with none finished, the score of the one cut short
-    counts as a single game so a very good agent that never loses is not scored NaN."""
-    return result.mean if result.scores else result.unfinished_score
+    """Mean raw score of the games finished within the budget, 0 if none finished
+    (Lua train_agent.lua: total_reward / max(1, nepisodes))."""
+    return result.mean if result.scores else 0.0

@@ -69,7 +69,12 @@ def make_env(
             life_loss_terminal=config.life_loss_terminal,
             max_episode_frames=cap,
         )
-    return GymnasiumEnv(_make_gymnasium(name), seed=seed, max_episode_steps=cap)
+    env = _make_gymnasium(name)
+    try:
+        return GymnasiumEnv(env, seed=seed, max_episode_steps=cap)
+    except EnvironmentError_:
+        env.close()
+        raise
 
 
 def check_env_name(name: str) -> None:

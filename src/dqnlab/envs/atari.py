@@ -8,9 +8,19 @@ Timeline of one agent step with action repeat 4 (frames f1..f4 are raw 60 Hz fra
                           observation
 
 The repeat stops early at game over and, in training with `life_loss_terminal`, at the
-frame a life is lost (alewrap GameEnvironment:step). The two-frame buffer is cleared at
-every episode start (GameEnvironment:newGame calls GameScreen:clear), so the first
-observation of an episode is the last no-op frame pooled with zeros, i.e. itself.
+frame a life is lost (alewrap GameEnvironment:step). The two-frame pool is cleared at
+every episode start (GameEnvironment:newGame calls GameScreen:clear) and then holds only
+frames of the new episode, so with one painted frame the observation is that frame.
+
+Episode starts follow GameEnvironment:nextRandomGame(k), k = torch.random(30) (alewrap
+GameEnvironment.lua L131-156; docs/lua-sources.md section 1): newGame() clears the pool and
+paints one `_step(0)`, then come k - 1 and one more `_step(0)`. After game over that first
+`_step(0)` emulates nothing: AleEnv:envStep (AleEnv.lua L89-101) sees the game is over,
+calls resetGame and returns the new game's first screen. After a lost life (training) it is
+a real no-op frame. So a new game starts with exactly k raw no-op frames after the reset, and
+a game that continues after a lost life with exactly k + 1; k is uniform in
+1..noop_max_frames (Lua random_starts = 30), and 0 when noop_max_frames is 0 (Lua newGame()
+alone). No-op frames are not repeated and their rewards are dropped.
 """
 
 from __future__ import annotations
@@ -22,13 +32,51 @@ from ale_py import Action, ALEInterface, LoggerMode, roms
 from dqnlab.errors import EnvironmentError_
 
 RAW_FRAME_SHAPE = (210, 160, 3)
+FRAME_POOLINGS = ("max_rgb", "none")
 _INTERPOLATIONS = {"area": cv2.INTER_AREA, "bilinear": cv2.INTER_LINEAR}
-# ITU-R BT.601 luminance, as torch's image.rgb2y in the Lua code.
-_LUMINANCE = np.array([0.299, 0.587, 0.114], dtype=np.float32)
+# ITU-R BT.601 luminance, as torch's image.rgb2y in the Lua code (a 1x3 matrix for cv2).
+_LUMINANCE = np.array([[0.299, 0.587, 0.114]], dtype=np.float32)
+_TRUNCATION_GUARD = np.float32(1e-3)
 
 
 def game_names() -> list[str]:
     return sorted(roms.get_all_rom_ids())
+
+
+class FramePreprocessor:
+    """`preprocess` with its intermediate images preallocated: no allocation per call."""
+
+    def __init__(self, size: int = 84, interpolation: str = "area") -> None:
+        if interpolation not in _INTERPOLATIONS:
+            raise ValueError(
+                f"interpolation {interpolation!r} is not one of {list(_INTERPOLATIONS)}"
+            )
+        self.size = size
+        self._interpolation = _INTERPOLATIONS[interpolation]
+        self._pooled = np.empty(RAW_FRAME_SHAPE, dtype=np.uint8)
+        self._pooled_float = np.empty(RAW_FRAME_SHAPE, dtype=np.float32)
+        self._luminance = np.empty(RAW_FRAME_SHAPE[:2], dtype=np.float32)
+        self._resized = np.empty((size, size), dtype=np.float32)
+
+    def __call__(
+        self, previous_rgb: np.ndarray, last_rgb: np.ndarray, out: np.ndarray
+    ) -> np.ndarray:
+        cv2.max(previous_rgb, last_rgb, dst=self._pooled)
+        np.copyto(self._pooled_float, self._pooled)
+        cv2.transform(self._pooled_float, _LUMINANCE, dst=self._luminance)
+        cv2.resize(
+            self._luminance,
+            (self.size, self.size),
+            dst=self._resized,
+            interpolation=self._interpolation,
+        )
+        # Truncated to a byte as the Lua code's (uint8)(255 * y). The 1/1000 grey level keeps
+        # float noise (an exact 142 computed as 141.99998) from costing a level. Both kernels
+        # average with non-negative weights summing to one, so no clipping is needed.
+        np.add(self._resized, _TRUNCATION_GUARD, out=self._resized)
+        np.floor(self._resized, out=self._resized)
+        np.copyto(out, self._resized, casting="unsafe")
+        return out
 
 
 def preprocess(
@@ -41,16 +89,12 @@ def preprocess(
     """One agent observation from the last two raw RGB frames of an action repeat.
 
     Pixel-wise max per RGB channel, then luminance in floating point, then the whole
-    210x160 frame resized to `size`x`size` (area averaging when shrinking), rounded to uint8.
+    210x160 frame resized to `size`x`size` (area averaging when shrinking), truncated to
+    uint8 as the Lua code stores it, `(uint8)(255 * y)` (TransitionTable.lua L290, L302).
     """
-    pooled = np.maximum(previous_rgb, last_rgb).astype(np.float32)
-    luminance = pooled @ _LUMINANCE
-    resized = cv2.resize(luminance, (size, size), interpolation=_INTERPOLATIONS[interpolation])
     if out is None:
         out = np.empty((size, size), dtype=np.uint8)
-    np.clip(np.rint(resized), 0, 255, out=resized)
-    out[...] = resized
-    return out
+    return FramePreprocessor(size, interpolation)(previous_rgb, last_rgb, out)
 
 
 class AtariEnv:
@@ -80,6 +124,8 @@ class AtariEnv:
     ) -> None:
         if game not in roms.get_all_rom_ids():
             raise EnvironmentError_(f"unknown Atari game {game!r}")
+        if frame_pooling not in FRAME_POOLINGS:
+            raise ValueError(f"frame_pooling {frame_pooling!r} is not one of {FRAME_POOLINGS}")
         ALEInterface.setLoggerMode(LoggerMode.Error)
         self.ale = ALEInterface()
         self.ale.setInt("random_seed", int(seed) % (2**31))
@@ -105,11 +151,12 @@ class AtariEnv:
         self.life_loss_terminal = life_loss_terminal and training
         self.max_episode_frames = max_episode_frames
         self.rng = np.random.default_rng(seed)
+        self._preprocess = FramePreprocessor(screen_size, resize_interpolation)
         # Two raw frames, written alternately: the pool of GameScreen (size 2).
         self._screens = np.zeros((2, *RAW_FRAME_SHAPE), dtype=np.uint8)
         self._newest = 0
         self._observation = np.zeros(self.observation_shape, dtype=np.uint8)
-        self._lives = 0
+        self._lives = 0  # lives after the previous agent step (Lua _state.lives)
         self._game_frames = 0
         self.frames = 0  # raw frames emulated by this environment, no-ops included
         self.game_over = True  # no game started yet
@@ -117,47 +164,48 @@ class AtariEnv:
 
     # Raw frames ---------------------------------------------------------------------
 
-    def _act_frame(self, action: object) -> float:
-        reward = self.ale.act(action)
+    def _paint(self) -> None:
+        """Put the current screen in the pool (GameScreen:paint)."""
         self._newest ^= 1
         self.ale.getScreenRGB(self._screens[self._newest])
+
+    def _act_frame(self, action: Action) -> float:
+        reward = self.ale.act(action)
+        self._paint()
         self._game_frames += 1
         self.frames += 1
         return float(reward)
 
-    def _clear_screens(self) -> None:
-        self._screens.fill(0)
-
     def _observe(self) -> np.ndarray:
         newest = self._screens[self._newest]
         previous = self._screens[self._newest ^ 1] if self.pool else newest
-        return preprocess(
-            previous, newest, self.screen_size, self.resize_interpolation, self._observation
-        )
+        return self._preprocess(previous, newest, self._observation)
 
     # Agent steps --------------------------------------------------------------------
 
     def reset(self, new_game: bool = False) -> np.ndarray:
-        """Start an agent episode: a new game after game over (or when `new_game`), else
-        continue the game after a lost life.
+        """Start an agent episode, as GameEnvironment:nextRandomGame does.
 
-        Then a random number of raw no-op frames, uniform in 1..noop_max_frames (Lua
-        random_starts; `torch.random(30)`), on a cleared frame pool.
+        A new game after game over or the episode cap (or when `new_game`): reset, paint its
+        first screen, then k raw no-op frames. Otherwise (a life was lost in training) the
+        game continues: one no-op frame, then k more. k is uniform in 1..noop_max_frames
+        (Lua random_starts = 30, `torch.random(30)`), 0 when noop_max_frames is 0.
         """
-        if new_game or self.game_over or self.truncated:
+        self._screens.fill(0)  # GameScreen:clear
+        if new_game or self.game_ended:
             self.ale.reset_game()
             self._game_frames = 0
             self.game_over = False
             self.truncated = False
-        self._clear_screens()
+            self._paint()
+        else:
+            self._act_frame(Action.NOOP)
         noops = int(self.rng.integers(1, self.noop_max_frames + 1)) if self.noop_max_frames else 0
         for _ in range(noops):
             self._act_frame(Action.NOOP)
             if self.ale.game_over():  # a game cannot normally end during no-ops
                 self.ale.reset_game()
                 self._game_frames = 0
-        if noops == 0:
-            self.ale.getScreenRGB(self._screens[self._newest])
         self._lives = self.ale.lives()
         return self._observe()
 
@@ -175,14 +223,16 @@ class AtariEnv:
             if self.ale.game_over():
                 self.game_over = terminated = True
                 break
-            lives = self.ale.lives()
-            if self.life_loss_terminal and lives < self._lives:
+            # Against the lives before this step, as GameEnvironment:step compares with
+            # self._state.lives.
+            if self.life_loss_terminal and self.ale.lives() < self._lives:
                 terminated = True
                 break
-            self._lives = lives
             if self.max_episode_frames and self._game_frames >= self.max_episode_frames:
-                self.truncated = True
                 break
+        self._lives = self.ale.lives()
+        if self.max_episode_frames and self._game_frames >= self.max_episode_frames:
+            self.truncated = not self.game_over
         return self._observe(), reward, terminated, self.truncated and not terminated
 
     @property

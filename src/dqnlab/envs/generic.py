@@ -34,8 +34,9 @@ class GymnasiumEnv:
 
     def __init__(self, env: gym.Env, *, seed: int, max_episode_steps: int = 0) -> None:
         if not isinstance(env.action_space, gym.spaces.Discrete):
+            name = env.spec.id if env.spec else type(env.unwrapped).__name__
             raise EnvironmentError_(
-                f"action space {env.action_space} is not supported; "
+                f"{name}: action space {env.action_space} is not supported; "
                 "DQN needs a Discrete action space"
             )
         self.env = env

@@ -1,0 +1,96 @@
+"""The agent: epsilon schedule, clipped TD loss, acting, target copies and update timing."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+import torch
+from torch import nn
+
+from dqnlab.agent import Agent, epsilon_at, td_loss
+from dqnlab.config import resolve_config
+
+
+@pytest.fixture
+def nature():
+    return resolve_config("nature", env="pong")
+
+
+def test_epsilon_schedule_of_the_nature_preset(nature) -> None:
+    assert epsilon_at(0, nature) == 1.0
+    assert epsilon_at(49_999, nature) == 1.0  # replay start: uniform random
+    assert epsilon_at(50_000, nature) == 1.0  # anneal begins
+    assert epsilon_at(550_000, nature) == pytest.approx(0.55)  # half way: 1 - 0.9/2
+    assert epsilon_at(1_050_000, nature) == pytest.approx(0.1)
+    assert epsilon_at(40_000_000, nature) == pytest.approx(0.1)
+
+
+class Linear1(nn.Module):
+    """Q(s, a) = w_a * s for a scalar input s: easy to work out by hand."""
+
+    def __init__(self, weights: list[float]) -> None:
+        super().__init__()
+        self.w = nn.Parameter(torch.tensor(weights))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return x.reshape(-1, 1).float() * self.w
+
+
+def test_td_loss_clips_the_error_in_the_gradient_and_sums_over_the_batch() -> None:
+    online = Linear1([1.0, 2.0])
+    target = Linear1([3.0, 0.5])
+    observations = torch.tensor([1.0, 1.0, 2.0])
+    next_observations = torch.tensor([1.0, 2.0, 1.0])
+    actions = torch.tensor([0, 1, 1])
+    rewards = torch.tensor([0.5, 1.0, -1.0])
+    terminals = torch.tensor([0.0, 0.0, 1.0])
+    loss = td_loss(online, target, observations, actions, rewards, terminals,
+                   next_observations, 0.9, 1.0, "sum")  # fmt: skip
+    loss.backward()
+    # q_taken = [1*1, 2*1, 2*2] = [1, 2, 4]
+    # q_target = [0.5 + 0.9*max(3,0.5), 1 + 0.9*max(6,1), -1] = [3.2, 6.4, -1]
+    # td_error = [2.2, 4.4, -5] -> clipped [1, 1, -1]; Huber: |d| - 0.5 each.
+    assert loss.item() == pytest.approx((2.2 - 0.5) + (4.4 - 0.5) + (5 - 0.5))
+    # dL/dw_a = -sum_i clip(d_i) * s_i over samples with action a
+    # w_0: -(1 * 1) = -1 ; w_1: -(1 * 1) - (-1 * 2) = 1
+    assert online.w.grad.tolist() == pytest.approx([-1.0, 1.0])
+    assert target.w.grad is None
+
+
+def test_td_loss_small_errors_are_not_clipped_and_mean_reduction() -> None:
+    online = Linear1([1.0])
+    target = Linear1([1.0])
+    one = torch.tensor([1.0, 1.0])
+    loss = td_loss(online, target, one, torch.tensor([0, 0]), torch.tensor([0.3, -0.4]),
+                   torch.tensor([1.0, 1.0]), one, 0.99, 1.0, "mean")  # fmt: skip
+    loss.backward()
+    # td_error = [0.3 - 1, -0.4 - 1] = [-0.7, -1.4]: 0.5*0.49 and 1.4-0.5
+    assert loss.item() == pytest.approx((0.245 + 0.9) / 2)
+    assert online.w.grad.item() == pytest.approx(-(-0.7 - 1.0) / 2)
+
+
+def test_acting_is_greedy_at_epsilon_zero_and_uniform_at_one(nature) -> None:
+    config = dataclasses.replace(nature, history_length=1)
+    agent = Agent(Linear1([0.1, 0.7, -0.2]), 3, config, torch.device("cpu"), seed=0)
+    observation = np.ones((1,), dtype=np.float32)
+    assert {agent.act(observation, 0.0) for _ in range(20)} == {1}
+    counts = np.bincount([agent.act(observation, 1.0) for _ in range(3000)], minlength=3)
+    assert np.all(np.abs(counts - 1000) < 150)
+
+
+def test_ties_are_broken_at_random(nature) -> None:
+    agent = Agent(Linear1([0.5, 0.5, 0.1]), 3, nature, torch.device("cpu"), seed=0)
+    chosen = {agent.act(np.ones((1,), dtype=np.float32), 0.0) for _ in range(50)}
+    assert chosen == {0, 1}
+
+
+def test_sync_target_copies_weights(nature) -> None:
+    agent = Agent(Linear1([1.0, 2.0]), 2, nature, torch.device("cpu"), seed=0)
+    with torch.no_grad():
+        agent.online.w.add_(5.0)
+    assert agent.target.w.tolist() == [1.0, 2.0]
+    agent.sync_target()
+    assert agent.target.w.tolist() == [6.0, 7.0]
+    assert not agent.target.w.requires_grad

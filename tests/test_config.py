@@ -1,0 +1,99 @@
+"""Configuration: presets carry DeepMind's values, overrides are typed and validated."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import pytest
+
+from dqnlab.config import (
+    Config,
+    config_from_dict,
+    config_to_toml,
+    load_preset,
+    parse_overrides,
+    preset_names,
+    resolve_config,
+)
+from dqnlab.errors import ConfigError
+
+# DeepMind's values (nature-dqn.md, Lua run_gpu and Nature ED Table 1).
+NATURE = {
+    "action_repeat_frames": 4, "frame_pooling": "max_rgb", "resize_interpolation": "area",
+    "screen_size": 84, "noop_max_frames": 30, "sticky_action_probability": 0.0,
+    "full_action_space": False, "life_loss_terminal": True, "max_episode_frames": 0,
+    "reward_clip": 1.0, "history_length": 4, "replay_capacity": 1_000_000,
+    "replay_start_steps": 50_000, "batch_size": 32, "update_period_steps": 4,
+    "target_update_steps": 10_000, "discount": 0.99, "td_error_clip": 1.0,
+    "loss_reduction": "sum", "optimizer": "deepmind_rmsprop", "learning_rate": 0.00025,
+    "rmsprop_decay": 0.95, "rmsprop_epsilon": 0.01, "epsilon_start": 1.0, "epsilon_end": 0.1,
+    "epsilon_decay_steps": 1_000_000, "eval_epsilon": 0.05, "eval_period_steps": 250_000,
+    "eval_steps": 125_000, "final_eval_episodes": 30, "final_eval_max_episode_frames": 18_000,
+    "total_steps": 50_000_000,
+}  # fmt: skip
+
+
+def test_nature_preset_has_deepminds_values() -> None:
+    config = resolve_config("nature", env="breakout")
+    for name, value in NATURE.items():
+        assert getattr(config, name) == value, name
+
+
+def test_every_shipped_preset_sets_every_field_and_is_valid() -> None:
+    assert set(preset_names()) >= {"nature", "seed-paper", "machado", "classic"}
+    fields = {f.name for f in dataclasses.fields(Config)} - {"env", "seed"}
+    for name in preset_names():
+        assert fields - {"mlp_hidden_sizes", "adam_epsilon"} <= set(load_preset(name)), name
+        resolve_config(name, env="pong")
+
+
+def test_seed_paper_and_machado_differ_where_their_papers_say() -> None:
+    seed_paper = resolve_config("seed-paper", env="pong")
+    assert (seed_paper.optimizer, seed_paper.learning_rate) == ("rmsprop", 0.00005)
+    machado = resolve_config("machado", env="pong")
+    assert machado.sticky_action_probability == 0.25 and machado.full_action_space
+    assert not machado.life_loss_terminal and machado.max_episode_frames == 108_000
+
+
+def test_overrides_are_typed() -> None:
+    overrides = parse_overrides(
+        ["learning_rate=1e-4", "life_loss_terminal=false", "optimizer=adam", "replay_capacity=5000",
+         "mlp_hidden_sizes=[64, 32]", "network=my.module:factory"]
+    )  # fmt: skip
+    config = resolve_config("nature", overrides, env="pong")
+    assert config.learning_rate == 1e-4 and config.life_loss_terminal is False
+    assert config.optimizer == "adam" and config.replay_capacity == 5000
+    assert config.mlp_hidden_sizes == (64, 32) and config.network == "my.module:factory"
+
+
+@pytest.mark.parametrize(
+    ("pair", "message"),
+    [
+        ("discount=1.5", "discount = 1.5 must be between 0 and 1"),
+        ("optimizer=sgd", "optimizer = 'sgd' is not one of: deepmind_rmsprop, rmsprop, adam"),
+        ("batch_size=-1", "batch_size = -1 must be positive"),
+        ("replay_capacity=many", "replay_capacity = 'many' is not a valid int"),
+        ("learning_rat=0.1", "unknown setting 'learning_rat' in --set; did you mean learning_rate"),
+        ("batch_size", "--set expects KEY=VALUE"),
+        ("life_loss_terminal=3", "life_loss_terminal = 3 is not a valid bool"),
+    ],
+)
+def test_bad_values_say_what_is_wrong(pair: str, message: str) -> None:
+    with pytest.raises(ConfigError) as error:
+        resolve_config("nature", parse_overrides([pair]), env="pong")
+    assert message in str(error.value)
+
+
+def test_unknown_preset_lists_the_accepted_ones() -> None:
+    with pytest.raises(ConfigError, match="accepted: classic, machado, nature, seed-paper"):
+        load_preset("natur")
+
+
+def test_resolved_config_round_trips_through_toml(tmp_path) -> None:
+    import tomllib
+
+    config = resolve_config("machado", parse_overrides(["seed=7"]), env="space_invaders")
+    path = tmp_path / "config.toml"
+    path.write_text(config_to_toml(config))
+    assert config_from_dict(tomllib.loads(path.read_text())) == config
+    assert resolve_config(str(path)) == config  # a saved config is itself a preset

@@ -1,0 +1,73 @@
+"""The training loop: when updates and target copies happen, what a run directory holds."""
+
+from __future__ import annotations
+
+import csv
+import math
+from pathlib import Path
+
+import torch
+
+from dqnlab import checkpoints
+from dqnlab.agent import Agent
+from dqnlab.config import resolve_config
+from dqnlab.evaluate import load_run_config
+from dqnlab.train import prepare_run_dir, train
+
+
+def test_update_and_target_copy_timing(tmp_path: Path, monkeypatch) -> None:
+    steps_taken = 0
+    update_steps: list[int] = []
+    sync_steps: list[int] = []
+    original_act, original_update = Agent.act, Agent.update
+
+    def act(self, observation, epsilon):
+        nonlocal steps_taken
+        steps_taken += 1
+        return original_act(self, observation, epsilon)
+
+    def update(self, batch):
+        update_steps.append(steps_taken)
+        return original_update(self, batch)
+
+    monkeypatch.setattr(Agent, "act", act)
+    monkeypatch.setattr(Agent, "update", update)
+    monkeypatch.setattr(Agent, "sync_target", lambda self: sync_steps.append(steps_taken))
+    config = resolve_config(
+        "classic", env="CartPole-v1", total_steps=200, replay_start_steps=100,
+        update_period_steps=4, target_update_steps=40, eval_period_steps=1000,
+    )  # fmt: skip
+    prepare_run_dir(tmp_path / "run", force=False)
+    train(config, tmp_path / "run", torch.device("cpu"), progress=False, tensorboard=False)
+    # Learning starts after replay start, every 4th step: 104, 108, ..., 200.
+    assert update_steps == list(range(104, 201, 4))
+    # Copies every 40 agent steps, counted from the first step, as Lua's target_q.
+    assert sync_steps == [40, 80, 120, 160, 200]
+
+
+def test_run_directory_contents(tmp_path: Path) -> None:
+    run = tmp_path / "run"
+    config = resolve_config(
+        "classic", env="CartPole-v1", total_steps=1200, replay_start_steps=200,
+        eval_period_steps=400, eval_steps=300, seed=3,
+    )  # fmt: skip
+    prepare_run_dir(run, force=False)
+    result = train(config, run, torch.device("cpu"), progress=False)
+    assert load_run_config(run) == config  # the resolved config is saved and reads back
+    with (run / "evaluations.csv").open() as handle:
+        evaluations = list(csv.DictReader(handle))
+    assert [int(row["step"]) for row in evaluations] == [400, 800, 1200]
+    best = max(float(row["mean"]) for row in evaluations)
+    assert result.best_eval_mean == best
+    assert float(evaluations[-1]["best_mean"]) == best
+    with (run / "episodes.csv").open() as handle:
+        episodes = list(csv.DictReader(handle))
+    assert sum(int(row["steps"]) for row in episodes) <= 1200
+    assert all(float(row["score"]) == int(row["steps"]) for row in episodes)  # +1 per step
+    saved = checkpoints.load(run / "checkpoints" / "best.pt")
+    assert saved["eval_mean"] == best and saved["config"]["seed"] == 3
+    assert int(saved["step"]) in (400, 800, 1200)
+    last = checkpoints.load(run / "checkpoints" / "last.pt")
+    assert last["step"] == 1200 and "optimizer" in last["agent"]
+    assert any((run / "tensorboard").iterdir())
+    assert not math.isnan(result.best_eval_mean)
