@@ -121,6 +121,31 @@ def evaluate(
 
 
 @app.command()
+def bench(
+    env: Annotated[str, typer.Option(help="Atari game to measure")] = "breakout",
+    steps: Annotated[
+        int, typer.Option(help="Agent steps timed for training and for evaluation")
+    ] = 2000,
+    replay_capacity: Annotated[
+        int, typer.Option(help="Transitions in the replay measured")
+    ] = 1_000_000,
+    json_path: Annotated[
+        Path | None, typer.Option("--json", help="Write the figures as JSON to this file")
+    ] = None,
+    device: Annotated[str, typer.Option(help="auto, cpu or cuda")] = "auto",
+) -> None:
+    """Measure training and evaluation throughput, the update, and replay memory use."""
+    from dqnlab.agent import resolve_device
+    from dqnlab.bench import run_benchmark
+
+    figures = run_benchmark(env, steps, replay_capacity, resolve_device(device))
+    for name, value in figures.items():
+        typer.echo(f"{name:40s} {value:.4g}" if isinstance(value, float) else f"{name:40s} {value}")
+    if json_path:
+        json_path.write_text(json.dumps(figures, indent=2) + "\n")
+
+
+@app.command()
 def games() -> None:
     """List the Atari games ale-py ships (names accepted by --env)."""
     from dqnlab.envs.atari import game_names

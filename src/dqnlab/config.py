@@ -44,7 +44,9 @@ class Config:
     )
     resize_interpolation: str = _setting("area", "area or bilinear resize of the whole frame")
     screen_size: int = _setting(84, "Side of the square observation in pixels")
-    noop_max_frames: int = _setting(30, "Random raw no-op frames at episode start: 1..this")
+    noop_max_frames: int = _setting(
+        30, "Raw no-op frames at episode start: k in 1..this (k+1 after a lost life)"
+    )
     sticky_action_probability: float = _setting(0.0, "ALE repeat_action_probability")
     full_action_space: bool = _setting(False, "All 18 actions instead of the game's minimal set")
     life_loss_terminal: bool = _setting(

@@ -55,6 +55,104 @@ class TrainResult:
         return self.frames / self.seconds if self.seconds > 0 else 0.0
 
 
+class Learner:
+    """The whole learning state of a run: environments, agent, replay memory, step counter.
+
+    `advance()` is one agent step of the Nature algorithm; the caller decides when to
+    evaluate, log and save.
+    """
+
+    def __init__(
+        self, config: Config, device: torch.device, replay: ReplayMemory | None = None
+    ) -> None:
+        """`replay` replaces the configured replay memory (a benchmark brings a filled one)."""
+        self.config = config
+        seeds = derive_seeds(config.seed, 6)
+        random.seed(seeds[0])
+        torch.manual_seed(seeds[1])
+        self.env = make_env(config, training=True, seed=seeds[2])
+        self.eval_env = make_env(
+            config, training=False, seed=seeds[3], max_episode_frames=config.eval_max_episode_frames
+        )
+        self.agent = build_agent(config, self.env, device, seeds[4])
+        self.replay = replay or ReplayMemory(
+            config.replay_capacity,
+            self.env.observation_shape,
+            self.env.observation_dtype,
+            config.history_length,
+            config.batch_size,
+            seeds[5],
+        )
+        self.history = FrameHistory(
+            config.history_length, self.env.observation_shape, self.env.observation_dtype
+        )
+        self.steps = 0
+        self.epsilon = epsilon_at(0, config)
+        self.game_score = 0.0  # raw score of the game in progress
+        self.game_steps = 0
+        self.loss_sum = torch.zeros((), device=device)  # summed on device: no sync per update
+        self.losses = 0
+        self.history.reset(self.env.reset())
+
+    def advance(self) -> tuple[float, int] | None:
+        """One agent step; returns (raw score, steps) of a game that just ended, else None."""
+        config = self.config
+        self.steps += 1
+        step = self.steps
+        self.epsilon = epsilon_at(step - 1, config)
+        action = self.agent.act(self.history.frames, self.epsilon)
+        observation, reward, terminated, truncated = self.env.step(action)
+        clip = config.reward_clip
+        self.replay.add(
+            self.history.newest,
+            action,
+            max(-clip, min(clip, reward)) if clip else reward,
+            terminated,
+        )
+        self.game_score += reward
+        self.game_steps += 1
+        finished = None
+        if terminated or truncated:
+            self.replay.add_last(observation)
+            if self.env.game_ended:
+                finished = (self.game_score, self.game_steps)
+                self.game_score, self.game_steps = 0.0, 0
+            self.history.reset(self.env.reset())
+        else:
+            self.history.push(observation)
+
+        if step > config.replay_start_steps and step % config.update_period_steps == 0:
+            self.loss_sum += self.agent.update(self.replay.sample())
+            self.losses += 1
+        if step % config.target_update_steps == 0:
+            self.agent.sync_target()
+        return finished
+
+    def evaluate(self) -> EvaluationResult:
+        """A periodic evaluation: `eval_steps` steps at `eval_epsilon`, finished games count."""
+        config = self.config
+        return play(
+            self.agent,
+            self.eval_env,
+            config.history_length,
+            config.eval_epsilon,
+            max_steps=config.eval_steps,
+        )
+
+    def mean_loss(self) -> float | None:
+        """Mean loss since the last call (one synchronisation), None if no update ran."""
+        if not self.losses:
+            return None
+        mean = float(self.loss_sum) / self.losses
+        self.loss_sum.zero_()
+        self.losses = 0
+        return mean
+
+    def close(self) -> None:
+        self.env.close()
+        self.eval_env.close()
+
+
 def train(
     config: Config,
     run_dir: Path,
@@ -63,91 +161,45 @@ def train(
     tensorboard: bool = True,
 ) -> TrainResult:
     """Train from scratch into `run_dir` (created by the caller with `prepare_run_dir`)."""
-    seeds = derive_seeds(config.seed, 6)
-    random.seed(seeds[0])
-    torch.manual_seed(seeds[1])
-    env = make_env(config, training=True, seed=seeds[2])
-    eval_env = make_env(
-        config, training=False, seed=seeds[3], max_episode_frames=config.eval_max_episode_frames
-    )
-    agent = build_agent(config, env, device, seeds[4])
-    replay = ReplayMemory(
-        config.replay_capacity,
-        env.observation_shape,
-        env.observation_dtype,
-        config.history_length,
-        config.batch_size,
-        seeds[5],
-    )
+    learner = Learner(config, device)
+    env, agent = learner.env, learner.agent
     (run_dir / CONFIG_FILE).write_text(config_to_toml(config))
     logger = RunLogger(run_dir, tensorboard=tensorboard)
-    history = FrameHistory(config.history_length, env.observation_shape, env.observation_dtype)
     metadata = {
         "config": config.to_dict(),
         "input_shape": (config.history_length, *env.observation_shape),
         "action_names": env.action_names,
     }
 
-    reward_clip = config.reward_clip
     best_mean = -float("inf")
     evaluations: list[tuple[int, float]] = []
     recent_scores: deque[float] = deque(maxlen=20)
     episodes = 0
-    game_score = 0.0
-    game_steps = 0
-    loss_sum = torch.zeros((), device=device)
-    losses = 0
     start = time.perf_counter()
     bar = tqdm(total=config.total_steps, disable=not progress, unit="step", smoothing=0.05)
     last_eval_text = "-"
     window_start, window_frames = start, 0
     learning_start, learning_frames = start, 0  # reset when learning starts
 
-    history.reset(env.reset())
     for step in range(1, config.total_steps + 1):
-        epsilon = epsilon_at(step - 1, config)
-        action = agent.act(history.frames, epsilon)
-        observation, reward, terminated, truncated = env.step(action)
-        learn_reward = max(-reward_clip, min(reward_clip, reward)) if reward_clip else reward
-        replay.add(history.newest, action, learn_reward, terminated)
-        game_score += reward
-        game_steps += 1
-        if terminated or truncated:
-            replay.add_last(observation)
-            if env.game_ended:
-                episodes += 1
-                recent_scores.append(game_score)
-                logger.episode(
-                    {
-                        "step": step,
-                        "frames": env.frames,
-                        "episode": episodes,
-                        "score": game_score,
-                        "steps": game_steps,
-                        "epsilon": round(epsilon, 6),
-                        "wall_seconds": round(time.perf_counter() - start, 3),
-                    }
-                )
-                game_score = 0.0
-                game_steps = 0
-            history.reset(env.reset())
-        else:
-            history.push(observation)
-
-        if step > config.replay_start_steps and step % config.update_period_steps == 0:
-            loss_sum += agent.update(replay.sample())
-            losses += 1
-        if step % config.target_update_steps == 0:
-            agent.sync_target()
+        finished = learner.advance()
+        if finished is not None:
+            episodes += 1
+            recent_scores.append(finished[0])
+            logger.episode(
+                {
+                    "step": step,
+                    "frames": env.frames,
+                    "episode": episodes,
+                    "score": finished[0],
+                    "steps": finished[1],
+                    "epsilon": round(learner.epsilon, 6),
+                    "wall_seconds": round(time.perf_counter() - start, 3),
+                }
+            )
 
         if step % config.eval_period_steps == 0 and step > config.replay_start_steps:
-            result = play(
-                agent,
-                eval_env,
-                config.history_length,
-                config.eval_epsilon,
-                max_steps=config.eval_steps,
-            )
+            result = learner.evaluate()
             result_mean = _periodic_mean(result)
             is_best = result_mean > best_mean
             if is_best:
@@ -181,23 +233,26 @@ def train(
             now = time.perf_counter()
             frames_per_second = (env.frames - window_frames) / (now - window_start)
             window_start, window_frames = now, env.frames
-            scalars = {"train/epsilon": epsilon, "train/frames_per_second": frames_per_second}
-            if losses:
-                scalars["train/loss"] = float(loss_sum) / losses
-                loss_sum.zero_()
-                losses = 0
+            scalars = {
+                "train/epsilon": learner.epsilon,
+                "train/frames_per_second": frames_per_second,
+            }
+            loss = learner.mean_loss()
+            if loss is not None:
+                scalars["train/loss"] = loss
             logger.scalars(step, scalars)
             if progress:
                 bar.update(1000)
                 bar.set_postfix(
                     fps=f"{frames_per_second:.0f}",
-                    eps=f"{epsilon:.3f}",
+                    eps=f"{learner.epsilon:.3f}",
                     score=f"{np.mean(recent_scores):.1f}" if recent_scores else "-",
                     eval=last_eval_text,
                     refresh=False,
                 )
         if step == config.replay_start_steps:
             learning_start, learning_frames = time.perf_counter(), env.frames
+    bar.update(config.total_steps - bar.n)
     bar.close()
     end = time.perf_counter()
     learning_seconds = end - learning_start
@@ -214,8 +269,7 @@ def train(
              "network": agent.online.state_dict()},
         )  # fmt: skip
     logger.close()
-    env.close()
-    eval_env.close()
+    learner.close()
     return TrainResult(
         config.total_steps, env.frames, end - start, learning_fps, best_mean, evaluations
     )

@@ -1,0 +1,104 @@
+"""Throughput and memory of the Nature DQN on the machine it runs on.
+
+Figures: replay memory per transition and the resident memory of a filled replay, the
+time to sample a minibatch, the update alone, training throughput with the nature preset
+after the replay-start phase, and evaluation throughput at epsilon 0.05.
+"""
+
+from __future__ import annotations
+
+import platform
+import time
+from typing import Any
+
+import numpy as np
+import psutil
+import torch
+
+from dqnlab import __version__
+from dqnlab.config import resolve_config
+from dqnlab.evaluate import play
+from dqnlab.replay import ReplayMemory
+from dqnlab.train import Learner
+
+
+def _resident_bytes() -> int:
+    return psutil.Process().memory_info().rss
+
+
+def _fill(replay: ReplayMemory, rng: np.random.Generator) -> None:
+    """Fill every slot with distinct-looking frames (a pool of random ones, cycled)."""
+    pool = rng.integers(0, 256, size=(64, *replay.frame_shape), dtype=np.uint8)
+    for i in range(replay.capacity):
+        replay.add(pool[i % 64], int(i % 4), 0.0, False)
+
+
+def run_benchmark(
+    env: str = "breakout",
+    steps: int = 2000,
+    replay_capacity: int = 1_000_000,
+    device: torch.device | None = None,
+    seed: int = 0,
+    update_repeats: int = 50,
+) -> dict[str, Any]:
+    device = device or torch.device("cpu")
+    config = resolve_config("nature", env=env, seed=seed, replay_capacity=replay_capacity)
+    figures: dict[str, Any] = {
+        "env": env,
+        "device": str(device),
+        "threads": torch.get_num_threads(),
+        "cpu_count": psutil.cpu_count(),
+        "dqnlab": __version__,
+        "torch": torch.__version__,
+        "numpy": np.__version__,
+        "python": platform.python_version(),
+        "replay_capacity": replay_capacity,
+        "steps": steps,
+    }
+
+    # Replay memory: resident size once every slot has been written.
+    before = _resident_bytes()
+    replay = ReplayMemory(replay_capacity, (84, 84), np.uint8, 4, 32, seed)
+    _fill(replay, np.random.default_rng(seed))
+    figures["replay_resident_bytes"] = _resident_bytes() - before
+    figures["replay_bytes_per_transition"] = replay.bytes_per_transition
+    figures["replay_resident_bytes_per_transition"] = figures["replay_resident_bytes"] / (
+        replay_capacity
+    )
+    figures["peak_resident_bytes"] = _resident_bytes()
+    timings = []
+    for _ in range(2000):
+        start = time.perf_counter()
+        replay.sample()
+        timings.append(time.perf_counter() - start)
+    figures["sample_us"] = float(np.median(timings) * 1e6)
+
+    # The update alone, on one sampled minibatch.
+    learner = Learner(config, device, replay=replay)
+    agent = learner.agent
+    batch = replay.sample()
+    for _ in range(5):
+        agent.update(batch)
+    timings = []
+    for _ in range(update_repeats):
+        start = time.perf_counter()
+        agent.update(batch).item()  # .item() waits for the device
+        timings.append(time.perf_counter() - start)
+    figures["update_ms"] = float(np.median(timings) * 1e3)
+
+    # Training after the replay-start phase: epsilon anneals, an update every 4 steps.
+    learner.steps = config.replay_start_steps
+    for _ in range(100):
+        learner.advance()
+    frames, start = learner.env.frames, time.perf_counter()
+    for _ in range(steps):
+        learner.advance()
+    float(learner.loss_sum)  # wait for the device
+    seconds = time.perf_counter() - start
+    figures["train_frames_per_second"] = (learner.env.frames - frames) / seconds
+
+    # Evaluation at epsilon 0.05.
+    result = play(agent, learner.eval_env, 4, config.eval_epsilon, max_steps=steps)
+    figures["eval_frames_per_second"] = result.frames_per_second
+    learner.close()
+    return figures
