@@ -451,7 +451,7 @@ def test_make_env_passes_the_atari_settings():
 
 
 def test_unknown_game_raises():
-    from dqnlab.errors import EnvironmentError_
+    from dqnlab.errors import EnvError
 
-    with pytest.raises(EnvironmentError_):
+    with pytest.raises(EnvError):
         AtariEnv("pongg", seed=0, training=True)

@@ -30,6 +30,10 @@ def test_train_and_evaluate_cartpole(tmp_path: Path) -> None:
     evaluated = dqnlab("evaluate", str(run), "--episodes", "3", "--json", str(out))
     assert evaluated.returncode == 0, evaluated.stderr
     result = json.loads(out.read_text())
+    # A checkpoint file evaluates with the configuration saved inside it.
+    last = str(run / "checkpoints" / "last.pt")
+    elsewhere = dqnlab("evaluate", str(tmp_path), "--checkpoint", last, "--episodes", "1")
+    assert elsewhere.returncode == 0, elsewhere.stderr
     assert set(result) == {"env", "checkpoint", "episodes", "scores", "mean", "std", "frames",
                            "frames_per_second"}  # fmt: skip
     assert result["env"] == "CartPole-v1" and result["episodes"] == len(result["scores"]) == 3
@@ -63,6 +67,15 @@ def test_refuses_to_overwrite_a_run(tmp_path: Path) -> None:
     (tmp_path / "run" / "config.toml").write_text("")
     refused = dqnlab("train", "--env", "CartPole-v1", "--run-dir", str(tmp_path / "run"))
     assert refused.returncode == 2 and "--force" in refused.stderr
+
+
+def test_force_never_deletes_a_directory_that_is_not_a_run(tmp_path: Path) -> None:
+    precious = tmp_path / "project"
+    precious.mkdir()
+    (precious / "thesis.tex").write_text("years of work")
+    refused = dqnlab("train", "--env", "CartPole-v1", "--run-dir", str(precious), "--force")
+    assert refused.returncode == 2 and "not a dqnlab run directory" in refused.stderr
+    assert (precious / "thesis.tex").read_text() == "years of work"
 
 
 @pytest.mark.parametrize(

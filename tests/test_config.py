@@ -76,6 +76,10 @@ def test_overrides_are_typed() -> None:
         ("learning_rat=0.1", "unknown setting 'learning_rat' in --set; did you mean learning_rate"),
         ("batch_size", "--set expects KEY=VALUE"),
         ("life_loss_terminal=3", "life_loss_terminal = 3 is not a valid bool"),
+        ("seed=-1", "seed = -1 must be zero or more"),
+        ("rmsprop_epsilon=0", "rmsprop_epsilon = 0.0 must be positive"),
+        ("replay_start_steps=0", "replay_start_steps = 0 must be positive"),
+        ("mlp_hidden_sizes=[1.5]", "mlp_hidden_sizes = [1.5] is not a valid list of integers"),
     ],
 )
 def test_bad_values_say_what_is_wrong(pair: str, message: str) -> None:
@@ -97,3 +101,10 @@ def test_resolved_config_round_trips_through_toml(tmp_path) -> None:
     path.write_text(config_to_toml(config))
     assert config_from_dict(tomllib.loads(path.read_text())) == config
     assert resolve_config(str(path)) == config  # a saved config is itself a preset
+
+
+def test_a_preset_file_with_bad_toml(tmp_path) -> None:
+    path = tmp_path / "broken.toml"
+    path.write_text("learning_rate = = 1\n")
+    with pytest.raises(ConfigError, match="is not valid TOML"):
+        load_preset(str(path))

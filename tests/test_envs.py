@@ -9,7 +9,7 @@ import pytest
 from dqnlab.config import Config
 from dqnlab.envs import check_env_name, is_atari, make_env
 from dqnlab.envs.generic import GymnasiumEnv, observation_layout
-from dqnlab.errors import EnvironmentError_
+from dqnlab.errors import EnvError
 
 
 class TinyImageEnv(gym.Env):
@@ -141,9 +141,9 @@ def test_termination_wins_over_a_time_limit_on_the_same_step():
 
 @pytest.mark.parametrize("name", ["Pendulum-v1", "MountainCarContinuous-v0"])
 def test_continuous_actions_are_refused(name):
-    with pytest.raises(EnvironmentError_, match="Discrete action space"):
+    with pytest.raises(EnvError, match="Discrete action space"):
         make_env(Config(env=name), training=True, seed=0)
-    with pytest.raises(EnvironmentError_, match="Discrete action space"):
+    with pytest.raises(EnvError, match="Discrete action space"):
         check_env_name(name)
 
 
@@ -151,28 +151,28 @@ def test_continuous_actions_are_refused(name):
     ("name", "suggestion"), [("pongg", "pong"), ("CartPole-v9", "CartPole-v1")]
 )
 def test_unknown_names_suggest_close_matches(name, suggestion):
-    with pytest.raises(EnvironmentError_) as error:
+    with pytest.raises(EnvError) as error:
         make_env(Config(env=name), training=True, seed=0)
     message = str(error.value)
     assert "close matches" in message
     assert suggestion in message.split("close matches")[1]
-    with pytest.raises(EnvironmentError_):
+    with pytest.raises(EnvError):
         check_env_name(name)
 
 
 def test_bad_entry_points_and_empty_names_are_refused():
-    with pytest.raises(EnvironmentError_, match="cannot load"):
+    with pytest.raises(EnvError, match="cannot load"):
         make_env(Config(env="no_such_module_for_dqnlab:Env"), training=True, seed=0)
-    with pytest.raises(EnvironmentError_, match="gymnasium.Env"):
+    with pytest.raises(EnvError, match="gymnasium.Env"):
         make_env(Config(env=f"{__name__}:not_an_env"), training=True, seed=0)
-    with pytest.raises(EnvironmentError_, match="no environment"):
+    with pytest.raises(EnvError, match="no environment"):
         check_env_name("")
 
 
 def test_unsupported_observation_spaces_are_refused():
-    with pytest.raises(EnvironmentError_, match="not supported"):
+    with pytest.raises(EnvError, match="not supported"):
         GymnasiumEnv(DictObservationEnv(), seed=0)
-    with pytest.raises(EnvironmentError_, match="not supported"):
+    with pytest.raises(EnvError, match="not supported"):
         observation_layout(gym.spaces.Box(0.0, 1.0, (2, 3), np.float32))
     gray = gym.spaces.Box(0, 255, (7, 9), np.uint8)
     assert observation_layout(gray) == ((7, 9), np.dtype(np.uint8), False)

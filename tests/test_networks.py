@@ -70,3 +70,20 @@ def test_user_factory() -> None:
         build_network("tests.test_networks:missing", (1, 4), 2, is_image=False)
     with pytest.raises(ConfigError, match="auto, nature_cnn, mlp"):
         build_network("resnet", (1, 4), 2, is_image=False)
+
+
+def failing_factory(input_shape, num_actions):
+    raise ValueError("no such layer")
+
+
+def wrong_input_factory(input_shape, num_actions):
+    return nn.Linear(3, num_actions)  # expects 3 features, gets (batch, 1, 4)
+
+
+def test_failures_of_user_code_and_tiny_images_are_config_errors() -> None:
+    with pytest.raises(ConfigError, match="failed: ValueError"):
+        build_network("tests.test_networks:failing_factory", (1, 4), 2, is_image=False)
+    with pytest.raises(ConfigError, match="fails on a batch of shape"):
+        build_network("tests.test_networks:wrong_input_factory", (1, 4), 2, is_image=False)
+    with pytest.raises(ConfigError, match="at least 36x36"):
+        build_network("auto", (4, 16, 16), 2, is_image=True)

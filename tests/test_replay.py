@@ -161,3 +161,14 @@ def test_frame_history_matches_replay_stacking() -> None:
     for slot, stack in enumerate(stacks):
         np.testing.assert_array_equal(replay.gather(np.array([slot])).observations[0], stack)
     assert values(stacks[0]) == [0, 0, 0, 1]
+
+
+def test_sampling_an_empty_or_incomplete_memory_raises() -> None:
+    replay = memory(batch=4)
+    with pytest.raises(RuntimeError, match="no complete transition"):
+        replay.sample()
+    replay.add(frame(1), 0, 0.0, False)  # o_{t+1} not stored yet
+    with pytest.raises(RuntimeError, match="no complete transition"):
+        replay.sample()
+    replay.add(frame(2), 0, 0.0, False)
+    assert replay.sample_indices(4).tolist() == [0, 0, 0, 0]

@@ -21,14 +21,12 @@ from dqnlab.replay import Batch
 def epsilon_at(step: int, config: Config) -> float:
     """Exploration rate for the action after `step` agent steps.
 
-    1.0 during replay start, then linear to `epsilon_end` over `epsilon_decay_steps`
-    (Lua NeuralQLearner:perceive, ep computed from numSteps - learn_start).
+    `epsilon_start` during replay start (1.0: the uniform random policy), then linear to
+    `epsilon_end` over `epsilon_decay_steps` (Lua NeuralQLearner:perceive, L369-371).
     """
-    steps_learning = step - config.replay_start_steps
-    if steps_learning < 0:
-        return 1.0  # uniform random policy before learning starts
+    steps_learning = max(0, step - config.replay_start_steps)
     if config.epsilon_decay_steps == 0:
-        return config.epsilon_end
+        return config.epsilon_end if steps_learning > 0 else config.epsilon_start
     progress = min(1.0, steps_learning / config.epsilon_decay_steps)
     return config.epsilon_start + (config.epsilon_end - config.epsilon_start) * progress
 
@@ -92,6 +90,8 @@ class Agent:
         return int(best[0] if len(best) == 1 else self.rng.choice(best))
 
     def q_values(self, stacked_observations: np.ndarray) -> np.ndarray:
+        """Q-values of the online network in eval mode (matters for dropout/batch norm)."""
+        self.online.eval()
         with torch.inference_mode():
             inputs = torch.from_numpy(stacked_observations).to(self.device)
             return self.online(inputs).float().cpu().numpy()
@@ -99,6 +99,7 @@ class Agent:
     def update(self, batch: Batch) -> torch.Tensor:
         """One gradient step on a sampled minibatch; returns the loss (not synchronised)."""
         device = self.device
+        self.online.train()
         loss = td_loss(
             self.online,
             self.target,

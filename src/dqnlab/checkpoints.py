@@ -1,4 +1,4 @@
-"""Checkpoints: the network, and for the latest one the whole learner, written atomically.
+"""Checkpoints: the best network, and the latest networks and optimizer, written atomically.
 
 A checkpoint is written to a temporary file, flushed to disk, then renamed over the old
 one, so a crash never leaves a half-written file under the real name.
@@ -32,7 +32,7 @@ def load(path: Path, map_location: str | torch.device = "cpu") -> dict[str, Any]
     if not path.is_file():
         raise DqnlabError(f"no checkpoint at {path}")
     try:
-        payload = torch.load(path, map_location=map_location, weights_only=False)
+        payload = torch.load(path, map_location=map_location, weights_only=True)
     except Exception as error:  # noqa: BLE001 - any unreadable file gets the same answer
         raise DqnlabError(f"checkpoint {path} cannot be read: {error}") from None
     if not isinstance(payload, dict) or payload.get("format") != FORMAT:

@@ -71,7 +71,12 @@ def train(
     typer.echo(
         f"dqnlab: {result.steps} steps, {result.frames} frames in {result.seconds:.0f} s "
         f"({result.frames_per_second:.0f} frames/s overall, {result.learning_frames_per_second:.0f} "
-        f"once learning); best evaluation mean {result.best_eval_mean:.2f}"
+        f"once learning); "
+        + (
+            f"best evaluation mean {result.best_eval_mean:.2f}"
+            if result.evaluations
+            else "no periodic evaluation ran"
+        )
     )
 
 
@@ -102,6 +107,7 @@ def evaluate(
         f"({checkpoint_path}, {result.frames} frames at {result.frames_per_second:.0f} frames/s)"
     )
     if json_path:
+        json_path.parent.mkdir(parents=True, exist_ok=True)
         json_path.write_text(
             json.dumps(
                 {
@@ -142,6 +148,7 @@ def bench(
     for name, value in figures.items():
         typer.echo(f"{name:40s} {value:.4g}" if isinstance(value, float) else f"{name:40s} {value}")
     if json_path:
+        json_path.parent.mkdir(parents=True, exist_ok=True)
         json_path.write_text(json.dumps(figures, indent=2) + "\n")
 
 

@@ -118,14 +118,14 @@ def _validate(config: Config) -> None:
         "action_repeat_frames", "screen_size", "history_length", "replay_capacity",
         "batch_size", "update_period_steps", "target_update_steps", "learning_rate",
         "eval_period_steps", "eval_steps", "final_eval_episodes", "total_steps",
+        "replay_start_steps", "rmsprop_epsilon", "adam_epsilon",
     )  # fmt: skip
     for name in positive:
         if getattr(config, name) <= 0:
             raise ConfigError(f"{name} = {getattr(config, name)} must be positive")
     non_negative = (
-        "noop_max_frames", "max_episode_frames", "reward_clip", "replay_start_steps",
-        "td_error_clip", "epsilon_decay_steps", "eval_max_episode_frames",
-        "final_eval_max_episode_frames", "rmsprop_epsilon", "adam_epsilon",
+        "seed", "noop_max_frames", "max_episode_frames", "reward_clip", "td_error_clip",
+        "epsilon_decay_steps", "eval_max_episode_frames", "final_eval_max_episode_frames",
     )  # fmt: skip
     for name in non_negative:
         if getattr(config, name) < 0:
@@ -171,7 +171,10 @@ def load_preset(name_or_path: str) -> dict[str, Any]:
             f"unknown preset {name_or_path!r}; accepted: {', '.join(preset_names())} "
             "or the path of a .toml file"
         )
-    values = tomllib.loads(text)
+    try:
+        values = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as error:
+        raise ConfigError(f"preset {name_or_path!r} is not valid TOML: {error}") from None
     _check_names(values, f"preset {name_or_path!r}")
     return values
 
@@ -223,9 +226,13 @@ def _coerce(name: str, value: Any) -> Any:
         # tuple[int, ...]
         if isinstance(value, (int, str)) and not isinstance(value, bool):
             value = [int(v) for v in str(value).split(",") if v.strip()]
-        return tuple(int(v) for v in value)
+        if any(isinstance(v, bool) or not isinstance(v, int) for v in value):
+            raise TypeError
+        return tuple(value)
     except (TypeError, ValueError):
-        type_name = getattr(expected, "__name__", str(expected))
+        type_name = getattr(expected, "__name__", None) or "list of integers"
+        if expected not in (bool, int, float, str):
+            type_name = "list of integers"
         raise ConfigError(f"{name} = {value!r} is not a valid {type_name}") from None
 
 

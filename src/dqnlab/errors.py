@@ -11,7 +11,7 @@ class ConfigError(DqnlabError):
     """A setting, preset or override is not valid."""
 
 
-class EnvironmentError_(DqnlabError):
+class EnvError(DqnlabError):
     """The environment cannot be used: unknown id or game, or unsupported spaces."""
 
 

@@ -33,7 +33,6 @@ CONFIG_FILE = "config.toml"
 @dataclass
 class EvaluationResult:
     scores: list[float] = field(default_factory=list)
-    unfinished_score: float = 0.0  # of the game cut short by the step budget, if any
     steps: int = 0
     frames: int = 0
     seconds: float = 0.0
@@ -88,7 +87,6 @@ def play(
             history.reset(env.reset())
         else:
             history.push(observation)
-    result.unfinished_score = score
     result.frames = env.frames - frames_before
     result.seconds = time.perf_counter() - start
     return result
@@ -98,8 +96,11 @@ def load_run_config(run_dir: Path) -> Config:
     path = run_dir / CONFIG_FILE
     if not path.is_file():
         raise DqnlabError(f"{run_dir} is not a dqnlab run directory (no {CONFIG_FILE})")
-    with path.open("rb") as handle:
-        return config_from_dict(tomllib.load(handle))
+    try:
+        with path.open("rb") as handle:
+            return config_from_dict(tomllib.load(handle))
+    except tomllib.TOMLDecodeError as error:
+        raise DqnlabError(f"{path} is not valid TOML: {error}") from None
 
 
 def final_evaluation(
@@ -110,13 +111,18 @@ def final_evaluation(
     device: torch.device,
 ) -> tuple[EvaluationResult, Config, Path]:
     """Nature's final protocol on a run's network: whole games of at most
-    `final_eval_max_episode_frames`, at `eval_epsilon`, with random no-op starts."""
-    config = load_run_config(run_dir)
+    `final_eval_max_episode_frames`, at `eval_epsilon`, with random no-op starts.
+
+    The network is built from the configuration saved in the checkpoint itself, so a
+    checkpoint file from another run evaluates with its own settings.
+    """
     if checkpoint in ("best", "last"):
+        load_run_config(run_dir)  # a clear error if RUN_DIR is not a run
         path = run_dir / "checkpoints" / f"{checkpoint}.pt"
     else:
         path = Path(checkpoint)
     payload = checkpoints.load(path, map_location=device)
+    config = config_from_dict(payload["config"])
     weights = payload["network"] if "network" in payload else payload["agent"]["online"]
     env_seed, agent_seed = derive_seeds(seed, 2)
     env = make_env(
@@ -126,7 +132,10 @@ def final_evaluation(
         max_episode_frames=config.final_eval_max_episode_frames,
     )
     agent = build_agent(config, env, device, agent_seed)
-    agent.online.load_state_dict(weights)
+    try:
+        agent.online.load_state_dict(weights)
+    except RuntimeError as error:
+        raise DqnlabError(f"checkpoint {path} does not fit its network: {error}") from None
     count = episodes if episodes is not None else config.final_eval_episodes
     if count <= 0:
         raise DqnlabError(f"--episodes {count} must be positive")

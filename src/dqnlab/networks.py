@@ -30,7 +30,6 @@ class NatureCNN(nn.Module):
         # Images may carry channels: (history, C, H, W) becomes history*C input planes.
         channels = history * (frame_shape[0] if len(frame_shape) == 3 else 1)
         height, width = frame_shape[-2:]
-        self.uint8_input = True
         self.features = nn.Sequential(
             nn.Conv2d(channels, 32, kernel_size=8, stride=4),
             nn.ReLU(),
@@ -40,6 +39,10 @@ class NatureCNN(nn.Module):
             nn.ReLU(),
             nn.Flatten(),
         )
+        if min(height, width) < 36:
+            raise ConfigError(
+                f"the Nature CNN needs images of at least 36x36 pixels, got {height}x{width}"
+            )
         with torch.no_grad():
             flat = self.features(torch.zeros(1, channels, height, width)).shape[1]
         self.head = nn.Sequential(nn.Linear(flat, 512), nn.ReLU(), nn.Linear(512, num_actions))
@@ -101,12 +104,21 @@ def _user_network(
         factory = getattr(importlib.import_module(module_name), attribute)
     except (ImportError, AttributeError) as error:
         raise ConfigError(f"network = {name!r} cannot be loaded: {error}") from None
-    network = factory(input_shape, num_actions)
+    try:
+        network = factory(input_shape, num_actions)
+    except Exception as error:  # noqa: BLE001 - the user's code: report, don't crash
+        raise ConfigError(f"network factory {name!r} failed: {error!r}") from None
     if not isinstance(network, nn.Module):
         raise ConfigError(f"network factory {name!r} returned {type(network)}, not nn.Module")
-    with torch.no_grad():
-        probe = torch.zeros((2, *input_shape), dtype=torch.uint8 if is_image else torch.float32)
-        q_values = network(probe)
+    probe = torch.zeros((2, *input_shape), dtype=torch.uint8 if is_image else torch.float32)
+    try:
+        with torch.no_grad():
+            q_values = network(probe)
+    except Exception as error:  # noqa: BLE001
+        raise ConfigError(
+            f"network {name!r} fails on a batch of shape {tuple(probe.shape)} "
+            f"({probe.dtype}): {error!r}"
+        ) from None
     if tuple(q_values.shape) != (2, num_actions):
         raise ConfigError(
             f"network {name!r} returns shape {tuple(q_values.shape)} for a batch of 2; "

@@ -128,15 +128,17 @@ class ReplayMemory:
 
     def sample_indices(self, count: int) -> np.ndarray:
         """Uniform with replacement over valid transitions, by rejection (as the Lua code)."""
-        if self.size < 2 or not self._valid(np.arange(self.size)).any():
-            raise RuntimeError("the replay memory holds no complete transition yet")
         indices = np.empty(count, dtype=np.int64)
         filled = 0
+        rejected_rounds = 0
         while filled < count:
-            candidates = self.rng.integers(0, self.size, size=2 * (count - filled))
+            candidates = self.rng.integers(0, max(self.size, 1), size=2 * (count - filled))
             accepted = candidates[self._valid(candidates)][: count - filled]
             indices[filled : filled + len(accepted)] = accepted
             filled += len(accepted)
+            rejected_rounds = 0 if len(accepted) else rejected_rounds + 1
+            if rejected_rounds == 20 and not self._valid(np.arange(self.size)).any():
+                raise RuntimeError("the replay memory holds no complete transition yet")
         return indices
 
     def sample(self) -> Batch:

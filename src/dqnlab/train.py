@@ -1,7 +1,7 @@
 """The training loop: the Nature DQN algorithm, one agent step at a time.
 
-Per step, in the order of DeepMind's Lua code (train_agent.lua, NeuralQLearner:perceive):
-act epsilon-greedily with the current network, repeat the action in the environment,
+Per step (Nature's Algorithm 1; DeepMind's Lua code with the same timings): act
+epsilon-greedily with the network just updated, repeat the action in the environment,
 store the transition, then every `update_period_steps` (once past `replay_start_steps`)
 take one gradient step, and every `target_update_steps` copy the online network into the
 target network. Every `eval_period_steps` the network is evaluated and the best one kept.
@@ -31,11 +31,23 @@ from dqnlab.replay import FrameHistory, ReplayMemory
 
 
 def prepare_run_dir(run_dir: Path, force: bool) -> None:
+    """Create an empty run directory; with `force`, replace an earlier dqnlab run there.
+
+    Only a directory holding a dqnlab run (its config.toml) is ever deleted, so a mistyped
+    `--run-dir . --force` cannot wipe a project.
+    """
+    if run_dir.exists() and not run_dir.is_dir():
+        raise DqnlabError(f"--run-dir {run_dir} exists and is not a directory")
     if run_dir.exists() and any(run_dir.iterdir()):
         if not force:
             raise DqnlabError(
                 f"run directory {run_dir} already exists and is not empty; "
                 "choose another --run-dir or pass --force to overwrite it"
+            )
+        if not (run_dir / CONFIG_FILE).is_file():
+            raise DqnlabError(
+                f"--force refuses to delete {run_dir}: it is not a dqnlab run directory "
+                f"(no {CONFIG_FILE}); choose an empty or new --run-dir"
             )
         shutil.rmtree(run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)

@@ -20,7 +20,7 @@ import numpy as np
 from dqnlab.config import Config
 from dqnlab.envs.atari import AtariEnv, game_names
 from dqnlab.envs.generic import GymnasiumEnv
-from dqnlab.errors import EnvironmentError_
+from dqnlab.errors import EnvError
 
 
 class Environment(Protocol):
@@ -72,7 +72,7 @@ def make_env(
     env = _make_gymnasium(name)
     try:
         return GymnasiumEnv(env, seed=seed, max_episode_steps=cap)
-    except EnvironmentError_:
+    except EnvError:
         env.close()
         raise
 
@@ -90,13 +90,13 @@ def check_env_name(name: str) -> None:
 
 def _make_gymnasium(name: str) -> gym.Env:
     if not name:
-        raise EnvironmentError_("no environment given; pass --env (e.g. pong, CartPole-v1)")
+        raise EnvError("no environment given; pass --env (e.g. pong, CartPole-v1)")
     if ":" in name and "/" not in name.split(":")[0]:
         return _make_from_entry_point(name)
     try:
         return gym.make(name)
     except gym.error.Error as error:
-        raise EnvironmentError_(_unknown_env_message(name, error)) from None
+        raise EnvError(_unknown_env_message(name, error)) from None
 
 
 def _make_from_entry_point(name: str) -> gym.Env:
@@ -105,16 +105,19 @@ def _make_from_entry_point(name: str) -> gym.Env:
     try:
         module = importlib.import_module(module_name)
     except ImportError as error:
-        raise EnvironmentError_(f"cannot load environment {name!r}: {error}") from None
+        raise EnvError(f"cannot load environment {name!r}: {error}") from None
     factory = getattr(module, attribute, None)
     if factory is None:  # importing the module may have registered the id
         try:
             return gym.make(attribute)
         except gym.error.Error as error:
-            raise EnvironmentError_(_unknown_env_message(name, error)) from None
-    env = factory()
+            raise EnvError(_unknown_env_message(name, error)) from None
+    try:
+        env = factory()
+    except Exception as error:  # noqa: BLE001 - the user's code: report, don't crash
+        raise EnvError(f"environment factory {name!r} failed: {error!r}") from None
     if not isinstance(env, gym.Env):
-        raise EnvironmentError_(f"{name!r} did not return a gymnasium.Env (got {type(env)})")
+        raise EnvError(f"{name!r} did not return a gymnasium.Env (got {type(env)})")
     return env
 
 

@@ -29,7 +29,7 @@ import cv2
 import numpy as np
 from ale_py import Action, ALEInterface, LoggerMode, roms
 
-from dqnlab.errors import EnvironmentError_
+from dqnlab.errors import EnvError
 
 RAW_FRAME_SHAPE = (210, 160, 3)
 FRAME_POOLINGS = ("max_rgb", "none")
@@ -123,7 +123,7 @@ class AtariEnv:
         max_episode_frames: int = 0,
     ) -> None:
         if game not in roms.get_all_rom_ids():
-            raise EnvironmentError_(f"unknown Atari game {game!r}")
+            raise EnvError(f"unknown Atari game {game!r}")
         if frame_pooling not in FRAME_POOLINGS:
             raise ValueError(f"frame_pooling {frame_pooling!r} is not one of {FRAME_POOLINGS}")
         ALEInterface.setLoggerMode(LoggerMode.Error)

@@ -5,13 +5,13 @@ from __future__ import annotations
 import gymnasium as gym
 import numpy as np
 
-from dqnlab.errors import EnvironmentError_
+from dqnlab.errors import EnvError
 
 
 def observation_layout(space: gym.Space) -> tuple[tuple[int, ...], np.dtype, bool]:
     """(stored frame shape, dtype, channels-last image?) for an observation space."""
     if not isinstance(space, gym.spaces.Box):
-        raise EnvironmentError_(
+        raise EnvError(
             f"observation space {space} is not supported; dqnlab accepts Box observations "
             "(vectors, or images of shape (H, W) or (H, W, C))"
         )
@@ -23,7 +23,7 @@ def observation_layout(space: gym.Space) -> tuple[tuple[int, ...], np.dtype, boo
         return shape, np.dtype(np.uint8), False
     if len(shape) == 1:
         return shape, np.dtype(np.float32), False
-    raise EnvironmentError_(
+    raise EnvError(
         f"observation space {space} is not supported; dqnlab accepts 1-D vectors or uint8 "
         "images of shape (H, W) or (H, W, C)"
     )
@@ -35,7 +35,7 @@ class GymnasiumEnv:
     def __init__(self, env: gym.Env, *, seed: int, max_episode_steps: int = 0) -> None:
         if not isinstance(env.action_space, gym.spaces.Discrete):
             name = env.spec.id if env.spec else type(env.unwrapped).__name__
-            raise EnvironmentError_(
+            raise EnvError(
                 f"{name}: action space {env.action_space} is not supported; "
                 "DQN needs a Discrete action space"
             )
