@@ -117,14 +117,13 @@ class ReplayMemory:
     # Sampling -------------------------------------------------------------------------
 
     def _valid(self, slots: np.ndarray) -> np.ndarray:
-        """Which slots can start a sampled transition."""
+        """Which slots can start a sampled transition: o_{t+1} must be stored already."""
+        if self.size < self.capacity:  # slots 0..size-1 written, size-1 the newest
+            return ~self.is_last[slots] & (slots < self.size - 1)
         newest = (self.position - 1) % self.capacity
-        valid = ~self.is_last[slots] & (slots != newest)  # o_{t+1} must be stored already
-        if self.size == self.capacity:
-            # The oldest slots' histories reach back into overwritten (newest) data.
-            age = (slots - self.position) % self.capacity
-            valid &= age >= self.history_length - 1
-        return valid
+        # The oldest slots' histories reach back into overwritten (newest) data.
+        age = (slots - self.position) % self.capacity
+        return ~self.is_last[slots] & (slots != newest) & (age >= self.history_length - 1)
 
     def sample_indices(self, count: int) -> np.ndarray:
         """Uniform with replacement over valid transitions, by rejection (as the Lua code)."""
