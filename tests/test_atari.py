@@ -7,13 +7,14 @@ Lua code (alewrap GameEnvironment.lua) does with it.
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 import pytest
 from ale_py import Action, ALEInterface, LoggerMode, roms
 
 from dqnlab.config import Config
 from dqnlab.envs import make_env
-from dqnlab.envs.atari import AtariEnv, preprocess
+from dqnlab.envs.atari import AtariEnv, FramePreprocessor, preprocess
 
 ALEInterface.setLoggerMode(LoggerMode.Error)
 LUMINANCE = (0.299, 0.587, 0.114)
@@ -455,3 +456,30 @@ def test_unknown_game_raises():
 
     with pytest.raises(EnvError):
         AtariEnv("pongg", seed=0, training=True)
+
+
+def test_other_sources_preprocessing_choices() -> None:
+
+    red = np.zeros((210, 160, 3), np.uint8)
+    red[..., 0] = 255
+    green = np.zeros((210, 160, 3), np.uint8)
+    green[..., 1] = 255
+    out = np.empty((84, 84), np.uint8)
+    # Dopamine's order, grey then max: max(0.299 * 255, 0.587 * 255) = 149.685.
+    assert (FramePreprocessor(pooling="max_gray")(red, green, out) == 149).all()
+    # Rounding instead of the Lua code's truncation: 225.93 -> 226.
+    assert (FramePreprocessor(byte_conversion="round")(red, green, out) == 226).all()
+    # Only the last frame.
+    assert (FramePreprocessor(pooling="none")(red, green, out) == 149).all()
+
+
+def test_ale_grayscale_matches_ales_own() -> None:
+
+    ale = reference_ale("breakout", 4)
+    actions = ale.getMinimalActionSet()
+    for t in range(120):
+        ale.act(actions[t % len(actions)])
+    rgb, gray = ale.getScreenRGB(), ale.getScreenGrayscale()
+    expected = np.rint(cv2.resize(gray.astype(np.float32), (84, 84), interpolation=cv2.INTER_AREA))
+    preprocess = FramePreprocessor(pooling="none", grayscale="ale", byte_conversion="round")
+    np.testing.assert_array_equal(preprocess(rgb, rgb, np.empty((84, 84), np.uint8)), expected)

@@ -40,8 +40,10 @@ class Config:
     # Atari pipeline (ignored for other environments).
     action_repeat_frames: int = _setting(4, "Raw frames each agent action is repeated for")
     frame_pooling: str = _setting(
-        "max_rgb", "max_rgb: max of the last two RGB frames, then luminance; none: last frame"
+        "max_rgb", "max_rgb: max of the last two RGB frames, then gray; max_gray; none"
     )
+    grayscale: str = _setting("luminance", "luminance (0.299/0.587/0.114, float) or ale")
+    byte_conversion: str = _setting("truncate", "Observation to uint8: truncate (Lua) or round")
     resize_interpolation: str = _setting("area", "area or bilinear resize of the whole frame")
     screen_size: int = _setting(84, "Side of the square observation in pixels")
     noop_max_frames: int = _setting(
@@ -102,7 +104,9 @@ class Config:
 
 FIELD_NAMES = tuple(f.name for f in dataclasses.fields(Config))
 _CHOICES = {
-    "frame_pooling": ("max_rgb", "none"),
+    "frame_pooling": ("max_rgb", "max_gray", "none"),
+    "grayscale": ("luminance", "ale"),
+    "byte_conversion": ("truncate", "round"),
     "resize_interpolation": ("area", "bilinear"),
     "loss_reduction": ("sum", "mean"),
     "optimizer": ("deepmind_rmsprop", "rmsprop", "adam"),

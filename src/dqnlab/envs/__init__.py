@@ -61,6 +61,8 @@ def make_env(
             training=training,
             action_repeat_frames=config.action_repeat_frames,
             frame_pooling=config.frame_pooling,
+            grayscale=config.grayscale,
+            byte_conversion=config.byte_conversion,
             resize_interpolation=config.resize_interpolation,
             screen_size=config.screen_size,
             noop_max_frames=config.noop_max_frames,

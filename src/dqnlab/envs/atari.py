@@ -32,10 +32,14 @@ from ale_py import Action, ALEInterface, LoggerMode, roms
 from dqnlab.errors import EnvError
 
 RAW_FRAME_SHAPE = (210, 160, 3)
-FRAME_POOLINGS = ("max_rgb", "none")
+FRAME_POOLINGS = ("max_rgb", "max_gray", "none")
+GRAYSCALES = ("luminance", "ale")
+BYTE_CONVERSIONS = ("truncate", "round")
 _INTERPOLATIONS = {"area": cv2.INTER_AREA, "bilinear": cv2.INTER_LINEAR}
 # ITU-R BT.601 luminance, as torch's image.rgb2y in the Lua code (a 1x3 matrix for cv2).
 _LUMINANCE = np.array([[0.299, 0.587, 0.114]], dtype=np.float32)
+# ALE's getScreenGrayscale: rounded 0.2989 R + 0.5870 G + 0.1140 B (checked on real frames).
+_ALE_GRAYSCALE = np.array([[0.2989, 0.5870, 0.1140]], dtype=np.float32)
 _TRUNCATION_GUARD = np.float32(1e-3)
 
 
@@ -44,37 +48,74 @@ def game_names() -> list[str]:
 
 
 class FramePreprocessor:
-    """`preprocess` with its intermediate images preallocated: no allocation per call."""
+    """`preprocess` with its intermediate images preallocated: no allocation per call.
 
-    def __init__(self, size: int = 84, interpolation: str = "area") -> None:
-        if interpolation not in _INTERPOLATIONS:
-            raise ValueError(
-                f"interpolation {interpolation!r} is not one of {list(_INTERPOLATIONS)}"
-            )
+    The defaults are the Lua code's; the alternatives are the other sources' choices:
+    `pooling="max_gray"` takes the max after grayscale (Dopamine), `grayscale="ale"` is
+    ALE's own grayscale (0.2989/0.5870/0.1140, rounded to integers; Dopamine, Gymnasium),
+    `byte_conversion="round"` rounds instead of truncating (OpenCV, PIL).
+    """
+
+    def __init__(
+        self,
+        size: int = 84,
+        interpolation: str = "area",
+        pooling: str = "max_rgb",
+        grayscale: str = "luminance",
+        byte_conversion: str = "truncate",
+    ) -> None:
+        for name, value, accepted in (
+            ("interpolation", interpolation, tuple(_INTERPOLATIONS)),
+            ("pooling", pooling, FRAME_POOLINGS),
+            ("grayscale", grayscale, GRAYSCALES),
+            ("byte_conversion", byte_conversion, BYTE_CONVERSIONS),
+        ):
+            if value not in accepted:
+                raise ValueError(f"{name} {value!r} is not one of {list(accepted)}")
         self.size = size
         self._interpolation = _INTERPOLATIONS[interpolation]
+        self._pooling = pooling
+        self._weights = _ALE_GRAYSCALE if grayscale == "ale" else _LUMINANCE
+        self._round_gray = grayscale == "ale"
+        self._truncate = byte_conversion == "truncate"
         self._pooled = np.empty(RAW_FRAME_SHAPE, dtype=np.uint8)
-        self._pooled_float = np.empty(RAW_FRAME_SHAPE, dtype=np.float32)
-        self._luminance = np.empty(RAW_FRAME_SHAPE[:2], dtype=np.float32)
+        self._rgb_float = np.empty(RAW_FRAME_SHAPE, dtype=np.float32)
+        self._gray = np.empty(RAW_FRAME_SHAPE[:2], dtype=np.float32)
+        self._gray_previous = np.empty(RAW_FRAME_SHAPE[:2], dtype=np.float32)
         self._resized = np.empty((size, size), dtype=np.float32)
+
+    def _to_gray(self, rgb: np.ndarray, out: np.ndarray) -> None:
+        np.copyto(self._rgb_float, rgb)
+        cv2.transform(self._rgb_float, self._weights, dst=out)
+        if self._round_gray:
+            np.rint(out, out=out)
 
     def __call__(
         self, previous_rgb: np.ndarray, last_rgb: np.ndarray, out: np.ndarray
     ) -> np.ndarray:
-        cv2.max(previous_rgb, last_rgb, dst=self._pooled)
-        np.copyto(self._pooled_float, self._pooled)
-        cv2.transform(self._pooled_float, _LUMINANCE, dst=self._luminance)
+        if self._pooling == "max_rgb":
+            cv2.max(previous_rgb, last_rgb, dst=self._pooled)
+            self._to_gray(self._pooled, self._gray)
+        elif self._pooling == "max_gray":
+            self._to_gray(previous_rgb, self._gray_previous)
+            self._to_gray(last_rgb, self._gray)
+            np.maximum(self._gray, self._gray_previous, out=self._gray)
+        else:
+            self._to_gray(last_rgb, self._gray)
         cv2.resize(
-            self._luminance,
+            self._gray,
             (self.size, self.size),
             dst=self._resized,
             interpolation=self._interpolation,
         )
-        # Truncated to a byte as the Lua code's (uint8)(255 * y). The 1/1000 grey level keeps
-        # float noise (an exact 142 computed as 141.99998) from costing a level. Both kernels
-        # average with non-negative weights summing to one, so no clipping is needed.
-        np.add(self._resized, _TRUNCATION_GUARD, out=self._resized)
-        np.floor(self._resized, out=self._resized)
+        # Both kernels average with non-negative weights summing to one: no clipping needed.
+        if self._truncate:
+            # The Lua code's (uint8)(255 * y). The 1/1000 grey level keeps float noise (an
+            # exact 142 computed as 141.99998) from costing a level.
+            np.add(self._resized, _TRUNCATION_GUARD, out=self._resized)
+            np.floor(self._resized, out=self._resized)
+        else:
+            np.rint(self._resized, out=self._resized)
         np.copyto(out, self._resized, casting="unsafe")
         return out
 
@@ -114,6 +155,8 @@ class AtariEnv:
         training: bool,
         action_repeat_frames: int = 4,
         frame_pooling: str = "max_rgb",
+        grayscale: str = "luminance",
+        byte_conversion: str = "truncate",
         resize_interpolation: str = "area",
         screen_size: int = 84,
         noop_max_frames: int = 30,
@@ -144,14 +187,15 @@ class AtariEnv:
         self.observation_dtype = np.dtype(np.uint8)
         self.training = training
         self.action_repeat_frames = action_repeat_frames
-        self.pool = frame_pooling == "max_rgb"
         self.resize_interpolation = resize_interpolation
         self.screen_size = screen_size
         self.noop_max_frames = noop_max_frames
         self.life_loss_terminal = life_loss_terminal and training
         self.max_episode_frames = max_episode_frames
         self.rng = np.random.default_rng(seed)
-        self._preprocess = FramePreprocessor(screen_size, resize_interpolation)
+        self._preprocess = FramePreprocessor(
+            screen_size, resize_interpolation, frame_pooling, grayscale, byte_conversion
+        )
         # Two raw frames, written alternately: the pool of GameScreen (size 2).
         self._screens = np.zeros((2, *RAW_FRAME_SHAPE), dtype=np.uint8)
         self._newest = 0
@@ -177,9 +221,9 @@ class AtariEnv:
         return float(reward)
 
     def _observe(self) -> np.ndarray:
-        newest = self._screens[self._newest]
-        previous = self._screens[self._newest ^ 1] if self.pool else newest
-        return self._preprocess(previous, newest, self._observation)
+        return self._preprocess(
+            self._screens[self._newest ^ 1], self._screens[self._newest], self._observation
+        )
 
     # Agent steps --------------------------------------------------------------------
 
