@@ -87,3 +87,14 @@ def test_failures_of_user_code_and_tiny_images_are_config_errors() -> None:
         build_network("tests.test_networks:wrong_input_factory", (1, 4), 2, is_image=False)
     with pytest.raises(ConfigError, match="at least 36x36"):
         build_network("auto", (4, 16, 16), 2, is_image=True)
+
+
+def test_channels_last_gives_the_values_of_the_default_layout() -> None:
+    torch.manual_seed(1)
+    network = NatureCNN((4, 84, 84), num_actions=5)
+    frames = torch.randint(0, 256, (3, 4, 84, 84), dtype=torch.uint8)
+    expected = network.head(network.features.to(memory_format=torch.contiguous_format)(
+        frames.float() / 255.0
+    ))  # fmt: skip
+    network.features.to(memory_format=torch.channels_last)
+    torch.testing.assert_close(network(frames), expected, rtol=1e-5, atol=1e-5)

@@ -46,10 +46,12 @@ class NatureCNN(nn.Module):
         with torch.no_grad():
             flat = self.features(torch.zeros(1, channels, height, width)).shape[1]
         self.head = nn.Sequential(nn.Linear(flat, 512), nn.ReLU(), nn.Linear(512, num_actions))
+        # Channels-last convolutions are about a third faster on CPU (oneDNN), same values.
+        self.features.to(memory_format=torch.channels_last)
 
     def forward(self, observations: torch.Tensor) -> torch.Tensor:
-        x = observations.flatten(1, -3).float() / 255.0
-        return self.head(self.features(x))
+        planes = observations.flatten(1, -3).contiguous(memory_format=torch.channels_last)
+        return self.head(self.features(planes.float().div_(255.0)))
 
 
 class MLP(nn.Module):
