@@ -19,7 +19,7 @@ from dqnlab import __version__
 from dqnlab.config import resolve_config
 from dqnlab.evaluate import play
 from dqnlab.replay import ReplayMemory
-from dqnlab.train import Learner
+from dqnlab.train import TIMED_PARTS, Learner
 
 
 def _resident_bytes() -> int:
@@ -91,11 +91,17 @@ def run_benchmark(
     for _ in range(100):
         learner.advance()
     frames, start = learner.env.frames, time.perf_counter()
+    learner.seconds = dict.fromkeys(learner.seconds, 0.0)
     for _ in range(steps):
         learner.advance()
     float(learner.loss_sum)  # wait for the device
     seconds = time.perf_counter() - start
     figures["train_frames_per_second"] = (learner.env.frames - frames) / seconds
+    # Where a training step's time goes; "other" is the loop's own overhead.
+    parts = {name: learner.seconds[name] for name in TIMED_PARTS}
+    parts["other"] = seconds - sum(parts.values())
+    for name, part_seconds in parts.items():
+        figures[f"train_split_{name}"] = part_seconds / seconds
 
     # Evaluation at epsilon 0.05.
     result = play(agent, learner.eval_env, 4, config.eval_epsilon, max_steps=steps)

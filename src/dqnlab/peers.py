@@ -4,24 +4,27 @@ Stable-Baselines3's DQN (optional extra `dqnlab[bench]`) with the Nature hyperpa
 its documented Atari pipeline (`make_atari_env` + `VecFrameStack(n_stack=4)`, one
 environment) and `DQN("CnnPolicy", ...)`. Where SB3 has no setting for a Nature detail it
 keeps its own default (mean Huber loss, gradient-norm clipping at 10, torch's RMSprop with
-epsilon outside the square root, epsilon annealed from step 0): that is what users run, and
-`peer_settings` records it. Throughput is measured after the replay-start phase only.
+epsilon outside the square root, epsilon annealed from step 0 rather than from the end of
+replay start): that is what users run, and `peer_settings` records it. Throughput is
+measured after the replay-start phase only.
 """
 
 from __future__ import annotations
 
 import time
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import psutil
 import torch
 
 from dqnlab.errors import EnvError, ResourceError
 
+if TYPE_CHECKING:
+    from stable_baselines3 import DQN
+
 PEER_NAME = "stable-baselines3"
 ACTION_REPEAT_FRAMES = 4  # Nature "action repeat", done by AtariWrapper's MaxAndSkipEnv
 HISTORY_LENGTH = 4  # Nature "agent history length": VecFrameStack(n_stack=4)
-SCREEN_SIZE = 84
 EPSILON_DECAY_STEPS = 1_000_000  # Nature "final exploration frame" (agent steps)
 
 # Nature hyperparameters (Extended Data Table 1) under SB3's names.
@@ -34,11 +37,14 @@ NATURE_DQN_KWARGS: dict[str, Any] = {
     "target_update_interval": 10_000,
     "exploration_initial_eps": 1.0,
     "exploration_final_eps": 0.1,
-    "optimize_memory_usage": False,  # SB3's default: stores obs and next_obs
+    "optimize_memory_usage": False,  # SB3's default: the replay stores obs and next_obs
 }
 # Nature RMSProp: squared-gradient momentum 0.95, min squared gradient 0.01, centred as in
-# the Lua code; torch adds eps outside the square root, unlike DeepMind's.
+# the Lua code; torch adds eps outside the square root, DeepMind's inside.
 NATURE_RMSPROP_KWARGS: dict[str, Any] = {"alpha": 0.95, "eps": 0.01, "centered": True}
+# SB3 docs for v5 ids: no frame skip and no sticky actions in the env, so that AtariWrapper's
+# MaxAndSkipEnv repeats each action 4 frames and max-pools the last 2, as the Nature setup.
+ATARI_ENV_KWARGS: dict[str, Any] = {"frameskip": 1, "repeat_action_probability": 0.0}
 
 
 def peer_available() -> bool:
@@ -56,6 +62,71 @@ def atari_env_id(game: str) -> str:
     return f"ALE/{game.title().replace('_', '')}-v5"
 
 
+def make_sb3_dqn(
+    env: str,
+    total_steps: int,
+    learning_starts: int,
+    buffer_size: int,
+    seed: int = 0,
+    device: str = "cpu",
+) -> DQN:
+    """SB3's DQN with the Nature hyperparameters on one standard SB3 Atari environment.
+
+    `total_steps` is what `learn()` will be given: SB3 anneals epsilon over a fraction of
+    it, so the fraction is chosen for a 1M-step anneal.
+    """
+    if not peer_available():
+        raise ImportError(
+            "Stable-Baselines3 is not installed: pip install 'dqnlab[bench]' to compare with it"
+        )
+    import ale_py
+    import gymnasium
+    from stable_baselines3 import DQN
+    from stable_baselines3.common.env_util import make_atari_env
+    from stable_baselines3.common.vec_env import VecFrameStack
+
+    gymnasium.register_envs(ale_py)
+    env_id = atari_env_id(env)
+    if env_id not in gymnasium.registry:
+        raise EnvError(f"unknown Atari game {env!r} (no Gymnasium id {env_id})")
+    vec_env = make_atari_env(env_id, n_envs=1, seed=seed, env_kwargs=ATARI_ENV_KWARGS)
+    stacked_env = VecFrameStack(vec_env, n_stack=HISTORY_LENGTH)
+    model = DQN(
+        "CnnPolicy",
+        stacked_env,
+        buffer_size=buffer_size,
+        learning_starts=learning_starts,
+        exploration_fraction=EPSILON_DECAY_STEPS / total_steps,
+        policy_kwargs={
+            "optimizer_class": torch.optim.RMSprop,
+            "optimizer_kwargs": NATURE_RMSPROP_KWARGS,
+        },
+        seed=seed,
+        device=device,
+        verbose=0,
+        **NATURE_DQN_KWARGS,
+    )
+    # SB3 only warns when its replay cannot fit (its arrays fill lazily); fail before running.
+    resident_bytes = min(buffer_size, total_steps) * replay_bytes_per_transition(model)
+    available_bytes = psutil.virtual_memory().available
+    if resident_bytes > available_bytes:
+        stacked_env.close()
+        raise ResourceError(
+            f"SB3's replay would hold {resident_bytes / 1e9:.1f} GB after {total_steps} steps "
+            f"but {available_bytes / 1e9:.1f} GB is available: ask for fewer steps"
+        )
+    return model
+
+
+def replay_bytes_per_transition(model: DQN) -> int:
+    """Bytes per transition of the model's replay: stacked obs, next obs, action, reward, flags."""
+    replay = model.replay_buffer
+    assert replay is not None
+    arrays = [replay.observations, replay.next_observations, replay.actions]
+    arrays += [replay.rewards, replay.dones, replay.timeouts]
+    return sum(array.nbytes for array in arrays) // replay.buffer_size
+
+
 def run_sb3_dqn(
     env: str = "breakout",
     steps: int = 2000,
@@ -67,96 +138,56 @@ def run_sb3_dqn(
     """Train SB3's DQN for `learning_starts + steps` agent steps; time the last `steps`.
 
     `env` is an ale-py game name ("breakout"). `buffer_size` defaults to
-    `learning_starts + steps`, enough that nothing is overwritten during the measurement
-    (SB3's 1M default would need about 56 GB once filled). Frames per second count
-    `ACTION_REPEAT_FRAMES` raw frames per agent step, as the Nature paper counts frames.
+    `learning_starts + steps`, so nothing is overwritten during the measurement (SB3's 1M
+    default would need about 56 GB once filled). Frames per second count
+    `ACTION_REPEAT_FRAMES` raw frames per agent step, as the Nature paper counts frames;
+    `peer_emulator_frames_per_second` also counts the no-op and FIRE frames of resets.
     """
     if steps < 1 or learning_starts < 1:
         raise ValueError(
-            f"steps and learning_starts must be at least 1, not {steps}, {learning_starts}"
+            f"steps and learning_starts must be at least 1: {steps}, {learning_starts}"
         )
-    if not peer_available():
-        raise ImportError(
-            "Stable-Baselines3 is not installed: pip install 'dqnlab[bench]' to compare with it"
-        )
-    import ale_py
-    import gymnasium
     import stable_baselines3
-    from stable_baselines3 import DQN
     from stable_baselines3.common.callbacks import BaseCallback
-    from stable_baselines3.common.env_util import make_atari_env
-    from stable_baselines3.common.vec_env import VecFrameStack
-
-    gymnasium.register_envs(ale_py)
-    env_id = atari_env_id(env)
-    if env_id not in gymnasium.registry:
-        raise EnvError(f"unknown Atari game {env!r} (no Gymnasium id {env_id})")
+    from stable_baselines3.common.type_aliases import TrainFreq
 
     total_steps = learning_starts + steps
-    buffer_size = total_steps if buffer_size is None else buffer_size
-
-    # SB3 docs for v5 ids: frameskip=1 and no sticky actions in the env, so that
-    # AtariWrapper's MaxAndSkipEnv repeats each action 4 frames and max-pools the last 2.
-    env_kwargs = {"frameskip": 1, "repeat_action_probability": 0.0}
-    vec_env = make_atari_env(env_id, n_envs=1, seed=seed, env_kwargs=env_kwargs)
-    stacked_env = VecFrameStack(vec_env, n_stack=HISTORY_LENGTH)
-    ale = vec_env.envs[0].unwrapped.ale
-
-    # SB3 anneals epsilon over a fraction of learn()'s total_timesteps, from step 0.
-    exploration_fraction = EPSILON_DECAY_STEPS / total_steps
-    model = DQN(
-        "CnnPolicy",
-        stacked_env,
-        buffer_size=buffer_size,
-        learning_starts=learning_starts,
-        exploration_fraction=exploration_fraction,
-        policy_kwargs={
-            "optimizer_class": torch.optim.RMSprop,
-            "optimizer_kwargs": NATURE_RMSPROP_KWARGS,
-        },
-        seed=seed,
-        device=device,
-        verbose=0,
-        **NATURE_DQN_KWARGS,
+    model = make_sb3_dqn(
+        env, total_steps, learning_starts, buffer_size or total_steps, seed=seed, device=device
     )
-    # SB3 only warns when its replay does not fit (the arrays are filled lazily); fail here.
-    replay = model.replay_buffer
-    replay_arrays = (replay.observations, replay.next_observations, replay.actions)
-    replay_arrays += (replay.rewards, replay.dones, replay.timeouts)
-    bytes_per_transition = sum(array.nbytes for array in replay_arrays) // buffer_size
-    resident_bytes = min(buffer_size, total_steps) * bytes_per_transition
-    available_bytes = psutil.virtual_memory().available
-    if resident_bytes > available_bytes:
-        stacked_env.close()
-        raise ResourceError(
-            f"SB3's replay would hold {resident_bytes / 1e9:.1f} GB after {total_steps} steps "
-            f"but {available_bytes / 1e9:.1f} GB is available: ask for fewer steps"
-        )
+    stacked_env = model.get_env()
+    assert stacked_env is not None
+    ale = stacked_env.unwrapped.envs[0].unwrapped.ale  # type: ignore[attr-defined]
 
     class ReplayStartClock(BaseCallback):
-        """Notes the time, step and raw frame count when the replay-start phase ends."""
+        """Notes the time, step and emulator frame count when replay start ends."""
 
         def __init__(self) -> None:
             super().__init__()
-            self.seconds: float | None = None
-            self.steps = 0
+            self.seconds = 0.0
+            self.steps = -1
             self.frames = 0
 
         def _on_step(self) -> bool:
-            if self.seconds is None and self.num_timesteps >= learning_starts:
+            if self.steps < 0 and self.num_timesteps >= learning_starts:
                 self.steps, self.frames = self.num_timesteps, ale.getFrameNumber()
                 self.seconds = time.perf_counter()
             return True
 
     clock = ReplayStartClock()
-    model.learn(total_timesteps=total_steps, callback=clock)
-    seconds = time.perf_counter() - (clock.seconds or 0.0)
+    try:
+        # learn() ends with the update of the last 4 steps, so they are all in the time.
+        model.learn(total_timesteps=total_steps, callback=clock)
+        seconds = time.perf_counter() - clock.seconds
+        emulator_frames = ale.getFrameNumber() - clock.frames
+    finally:
+        stacked_env.close()
     measured_steps = model.num_timesteps - clock.steps
-    emulator_frames = ale.getFrameNumber() - clock.frames
-    stacked_env.close()
 
     optimizer = model.policy.optimizer
-    figures: dict[str, Any] = {
+    train_freq = model.train_freq  # a TrainFreq once the model is set up
+    assert isinstance(train_freq, TrainFreq)
+    return {
         "peer": PEER_NAME,
         "peer_version": stable_baselines3.__version__,
         "peer_train_frames_per_second": ACTION_REPEAT_FRAMES * measured_steps / seconds,
@@ -164,19 +195,19 @@ def run_sb3_dqn(
         "peer_steps": measured_steps,
         "peer_learning_starts": learning_starts,
         "peer_buffer_size": model.buffer_size,
-        # Read back from the model, so they are what SB3 actually ran.
+        # Read back from the model: what SB3 actually ran.
         "peer_settings": {
-            "env_id": env_id,
-            "env_kwargs": env_kwargs,
+            "env_id": atari_env_id(env),
+            "env_kwargs": ATARI_ENV_KWARGS,
             "wrappers": "make_atari_env (AtariWrapper defaults: noop_max=30, frame_skip=4 "
-            "with max of last 2 frames, terminal_on_life_loss, FireResetEnv, 84x84 gray, "
+            "with max of the last 2 frames, terminal_on_life_loss, FireResetEnv, 84x84 gray, "
             "clip_reward) + VecFrameStack(n_stack=4) + VecTransposeImage",
             "n_envs": model.n_envs,
             "policy": type(model.policy).__name__,
             "learning_rate": model.learning_rate,
             "batch_size": model.batch_size,
             "gamma": model.gamma,
-            "train_freq": model.train_freq.frequency,
+            "train_freq": train_freq.frequency,
             "gradient_steps": model.gradient_steps,
             "target_update_interval": model.target_update_interval,
             "tau": model.tau,
@@ -189,11 +220,10 @@ def run_sb3_dqn(
             "loss": "smooth_l1_loss (Huber, mean over the batch)",  # SB3 DQN.train
             "max_grad_norm": model.max_grad_norm,
             "optimize_memory_usage": model.optimize_memory_usage,
-            "replay_bytes_per_transition": bytes_per_transition,
+            "replay_bytes_per_transition": replay_bytes_per_transition(model),
             "updates": model._n_updates,
             "device": str(model.device),
             "threads": torch.get_num_threads(),
             "torch": torch.__version__,
         },
     }
-    return figures

@@ -15,6 +15,7 @@ import time
 from collections import deque
 from dataclasses import dataclass
 from pathlib import Path
+from time import perf_counter
 
 import numpy as np
 import torch
@@ -67,6 +68,9 @@ class TrainResult:
         return self.frames / self.seconds if self.seconds > 0 else 0.0
 
 
+TIMED_PARTS = ("env", "act", "store", "sample", "update")
+
+
 class Learner:
     """The whole learning state of a run: environments, agent, replay memory, step counter.
 
@@ -104,16 +108,24 @@ class Learner:
         self.game_steps = 0
         self.loss_sum = torch.zeros((), device=device)  # summed on device: no sync per update
         self.losses = 0
+        self.seconds = dict.fromkeys(TIMED_PARTS + ("total",), 0.0)
         self.history.reset(self.env.reset())
 
     def advance(self) -> tuple[float, int] | None:
-        """One agent step; returns (raw score, steps) of a game that just ended, else None."""
+        """One agent step; returns (raw score, steps) of a game that just ended, else None.
+
+        The time of each part is added to `self.seconds` (a few clock reads per step).
+        """
         config = self.config
+        seconds = self.seconds
         self.steps += 1
         step = self.steps
+        start = perf_counter()
         self.epsilon = epsilon_at(step - 1, config)
         action = self.agent.act(self.history.frames, self.epsilon)
+        acted = perf_counter()
         observation, reward, terminated, truncated = self.env.step(action)
+        stepped = perf_counter()
         clip = config.reward_clip
         self.replay.add(
             self.history.newest,
@@ -124,20 +136,34 @@ class Learner:
         self.game_score += reward
         self.game_steps += 1
         finished = None
+        reset_seconds = 0.0
         if terminated or truncated:
             self.replay.add_last(observation)
             if self.env.game_ended:
                 finished = (self.game_score, self.game_steps)
                 self.game_score, self.game_steps = 0.0, 0
-            self.history.reset(self.env.reset())
+            reset_start = perf_counter()
+            observation = self.env.reset()
+            reset_seconds = perf_counter() - reset_start
+            self.history.reset(observation)
         else:
             self.history.push(observation)
+        stored = perf_counter()
+        seconds["act"] += acted - start
+        seconds["env"] += stepped - acted + reset_seconds  # resets are environment time
+        seconds["store"] += stored - stepped - reset_seconds
 
         if step > config.replay_start_steps and step % config.update_period_steps == 0:
-            self.loss_sum += self.agent.update(self.replay.sample())
+            batch = self.replay.sample()
+            sampled = perf_counter()
+            self.loss_sum += self.agent.update(batch)
             self.losses += 1
+            updated = perf_counter()
+            seconds["sample"] += sampled - stored
+            seconds["update"] += updated - sampled
         if step % config.target_update_steps == 0:
             self.agent.sync_target()
+        seconds["total"] += perf_counter() - start
         return finished
 
     def evaluate(self) -> EvaluationResult:
