@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import pytest
 import torch
 
 from dqnlab.bench import run_benchmark
@@ -17,3 +18,16 @@ def test_benchmark_figures_on_a_small_replay() -> None:
     for name in ("sample_us", "update_ms", "train_frames_per_second", "eval_frames_per_second"):
         assert figures[name] > 0, name
     assert figures["device"] == "cpu" and figures["threads"] >= 1
+
+
+def test_benchmark_with_the_peer_alternates_and_reports_the_ratio() -> None:
+    pytest.importorskip("stable_baselines3")
+    figures = run_benchmark(
+        "pong", steps=40, replay_capacity=3000, device=torch.device("cpu"), update_repeats=2,
+        peers=True, peer_learning_starts=100,
+    )  # fmt: skip
+    assert len(figures["train_frames_per_second_runs"]) == 2
+    assert len(figures["peer_train_frames_per_second_runs"]) == 2
+    ratio = figures["train_frames_per_second"] / figures["peer_train_frames_per_second"]
+    assert figures["train_ratio_vs_peer"] == pytest.approx(ratio)
+    assert figures["peer"] == "stable-baselines3"

@@ -200,11 +200,12 @@ def test_incremental_save_writes_only_the_changed_chunks(
 
     written_bytes = []
     original = checkpoints._write_buffer
-    monkeypatch.setattr(
-        checkpoints,
-        "_write_buffer",
-        lambda handle, data: written_bytes.append(data.nbytes) or original(handle, data),
-    )
+
+    def counting_write(handle: Any, data: memoryview) -> None:
+        written_bytes.append(data.nbytes)
+        original(handle, data)
+
+    monkeypatch.setattr(checkpoints, "_write_buffer", counting_write)
     changed = write(arrays, start, count, seed=1)
     store.save(2, small_state(2), arrays, changed, FINGERPRINT)
 

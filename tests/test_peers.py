@@ -69,4 +69,5 @@ def test_throughput_figures_after_replay_start() -> None:
     assert settings["updates"] == 200 // 4  # an update every 4 steps, none during replay start
     assert settings["optimizer"] == "RMSprop" and settings["max_grad_norm"] == 10
     assert settings["exploration_decay_steps"] == 1_000_000
+    assert settings["process_cpu_cores"] > 0 and "other_processes_cpu_cores" in settings
     assert settings["env_kwargs"] == {"frameskip": 1, "repeat_action_probability": 0.0}

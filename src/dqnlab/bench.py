@@ -17,7 +17,9 @@ import torch
 
 from dqnlab import __version__
 from dqnlab.config import resolve_config
+from dqnlab.errors import DqnlabError
 from dqnlab.evaluate import play
+from dqnlab.peers import peer_available, run_sb3_dqn
 from dqnlab.replay import ReplayMemory
 from dqnlab.train import TIMED_PARTS, Learner
 
@@ -33,6 +35,19 @@ def _fill(replay: ReplayMemory, rng: np.random.Generator) -> None:
         replay.add(pool[i % 64], int(i % 4), 0.0, False)
 
 
+def _measure_training(learner: Learner, steps: int) -> tuple[float, dict[str, float]]:
+    """Frames/s over `steps` training steps, and the fraction of time in each part."""
+    frames, start = learner.env.frames, time.perf_counter()
+    learner.seconds = dict.fromkeys(learner.seconds, 0.0)
+    for _ in range(steps):
+        learner.advance()
+    float(learner.loss_sum)  # wait for the device
+    seconds = time.perf_counter() - start
+    parts = {name: learner.seconds[name] / seconds for name in TIMED_PARTS}
+    parts["other"] = 1.0 - sum(parts.values())  # the loop's own overhead
+    return (learner.env.frames - frames) / seconds, parts
+
+
 def run_benchmark(
     env: str = "breakout",
     steps: int = 2000,
@@ -40,8 +55,18 @@ def run_benchmark(
     device: torch.device | None = None,
     seed: int = 0,
     update_repeats: int = 50,
+    peers: bool = False,
+    rounds: int | None = None,
+    peer_learning_starts: int = 5000,
 ) -> dict[str, Any]:
+    """All figures in one run. With `peers`, Stable-Baselines3's DQN is measured in
+    `rounds` (default 2) alternating with dqnlab's training, with the same settings."""
     device = device or torch.device("cpu")
+    rounds = rounds or (2 if peers else 1)
+    if peers and not peer_available():
+        raise DqnlabError(
+            "--peers needs Stable-Baselines3: pip install 'dqnlab[bench]' (or -e '.[bench]')"
+        )
     config = resolve_config("nature", env=env, seed=seed, replay_capacity=replay_capacity)
     figures: dict[str, Any] = {
         "env": env,
@@ -86,22 +111,27 @@ def run_benchmark(
         timings.append(time.perf_counter() - start)
     figures["update_ms"] = float(np.median(timings) * 1e3)
 
-    # Training after the replay-start phase: epsilon anneals, an update every 4 steps.
+    # Training after the replay-start phase, alternating with the peer when asked.
     learner.steps = config.replay_start_steps
     for _ in range(100):
         learner.advance()
-    frames, start = learner.env.frames, time.perf_counter()
-    learner.seconds = dict.fromkeys(learner.seconds, 0.0)
-    for _ in range(steps):
-        learner.advance()
-    float(learner.loss_sum)  # wait for the device
-    seconds = time.perf_counter() - start
-    figures["train_frames_per_second"] = (learner.env.frames - frames) / seconds
-    # Where a training step's time goes; "other" is the loop's own overhead.
-    parts = {name: learner.seconds[name] for name in TIMED_PARTS}
-    parts["other"] = seconds - sum(parts.values())
-    for name, part_seconds in parts.items():
-        figures[f"train_split_{name}"] = part_seconds / seconds
+    train_runs, peer_runs = [], []
+    for _ in range(rounds):
+        train_runs.append(_measure_training(learner, steps))
+        if peers:
+            peer_runs.append(run_sb3_dqn(env, steps, peer_learning_starts, seed, str(device)))
+    figures["train_frames_per_second"] = float(np.mean([run[0] for run in train_runs]))
+    figures["train_frames_per_second_runs"] = [round(run[0], 1) for run in train_runs]
+    for name, fraction in train_runs[-1][1].items():
+        figures[f"train_split_{name}"] = fraction
+    if peers:
+        peer_fps = [run["peer_train_frames_per_second"] for run in peer_runs]
+        figures.update({k: v for k, v in peer_runs[-1].items() if k.startswith("peer")})
+        figures["peer_train_frames_per_second"] = float(np.mean(peer_fps))
+        figures["peer_train_frames_per_second_runs"] = [round(f, 1) for f in peer_fps]
+        figures["train_ratio_vs_peer"] = (
+            figures["train_frames_per_second"] / figures["peer_train_frames_per_second"]
+        )
 
     # Evaluation at epsilon 0.05.
     result = play(agent, learner.eval_env, 4, config.eval_epsilon, max_steps=steps)

@@ -337,7 +337,8 @@ class CheckpointStore:
             for path in reversed(created):
                 _remove(path)
             if replaced.exists() and not final.exists():
-                os.replace(replaced, final)
+                with contextlib.suppress(OSError):
+                    os.replace(replaced, final)
             if isinstance(error, OSError):
                 raise DqnlabError(
                     f"could not write the checkpoint of step {step} in {self.directory}: "

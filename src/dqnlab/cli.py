@@ -139,12 +139,15 @@ def bench(
         Path | None, typer.Option("--json", help="Write the figures as JSON to this file")
     ] = None,
     device: Annotated[str, typer.Option(help="auto, cpu or cuda")] = "auto",
+    peers: Annotated[
+        bool, typer.Option(help="Also run Stable-Baselines3's DQN (dqnlab[bench]), alternating")
+    ] = False,
 ) -> None:
     """Measure training and evaluation throughput, the update, and replay memory use."""
     from dqnlab.agent import resolve_device
     from dqnlab.bench import run_benchmark
 
-    figures = run_benchmark(env, steps, replay_capacity, resolve_device(device))
+    figures = run_benchmark(env, steps, replay_capacity, resolve_device(device), peers=peers)
     for name, value in figures.items():
         typer.echo(f"{name:40s} {value:.4g}" if isinstance(value, float) else f"{name:40s} {value}")
     if json_path:

@@ -127,6 +127,14 @@ def replay_bytes_per_transition(model: DQN) -> int:
     return sum(array.nbytes for array in arrays) // replay.buffer_size
 
 
+def _busy_cpu_seconds() -> tuple[float, float]:
+    """CPU seconds used so far by the whole machine (all processes) and by this process."""
+    machine = psutil.cpu_times()
+    process = psutil.Process().cpu_times()
+    machine_busy = sum(machine) - machine.idle - getattr(machine, "iowait", 0.0)
+    return machine_busy, process.user + process.system
+
+
 def run_sb3_dqn(
     env: str = "breakout",
     steps: int = 2000,
@@ -152,9 +160,8 @@ def run_sb3_dqn(
     from stable_baselines3.common.type_aliases import TrainFreq
 
     total_steps = learning_starts + steps
-    model = make_sb3_dqn(
-        env, total_steps, learning_starts, buffer_size or total_steps, seed=seed, device=device
-    )
+    buffer_size = total_steps if buffer_size is None else buffer_size
+    model = make_sb3_dqn(env, total_steps, learning_starts, buffer_size, seed=seed, device=device)
     stacked_env = model.get_env()
     assert stacked_env is not None
     ale = stacked_env.unwrapped.envs[0].unwrapped.ale  # type: ignore[attr-defined]
@@ -167,10 +174,12 @@ def run_sb3_dqn(
             self.seconds = 0.0
             self.steps = -1
             self.frames = 0
+            self.cpu_seconds = (0.0, 0.0)
 
         def _on_step(self) -> bool:
             if self.steps < 0 and self.num_timesteps >= learning_starts:
                 self.steps, self.frames = self.num_timesteps, ale.getFrameNumber()
+                self.cpu_seconds = _busy_cpu_seconds()
                 self.seconds = time.perf_counter()
             return True
 
@@ -180,9 +189,12 @@ def run_sb3_dqn(
         model.learn(total_timesteps=total_steps, callback=clock)
         seconds = time.perf_counter() - clock.seconds
         emulator_frames = ale.getFrameNumber() - clock.frames
+        machine_cpu, process_cpu = _busy_cpu_seconds()
     finally:
         stacked_env.close()
     measured_steps = model.num_timesteps - clock.steps
+    machine_cores = (machine_cpu - clock.cpu_seconds[0]) / seconds
+    process_cores = (process_cpu - clock.cpu_seconds[1]) / seconds
 
     optimizer = model.policy.optimizer
     train_freq = model.train_freq  # a TrainFreq once the model is set up
@@ -225,5 +237,9 @@ def run_sb3_dqn(
             "device": str(model.device),
             "threads": torch.get_num_threads(),
             "torch": torch.__version__,
+            # Cores this run used, and cores other processes took meanwhile: a shared or
+            # busy machine shows here (a 2-thread update slows down badly when contended).
+            "process_cpu_cores": process_cores,
+            "other_processes_cpu_cores": machine_cores - process_cores,
         },
     }
