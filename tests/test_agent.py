@@ -2,15 +2,19 @@
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 
 import numpy as np
 import pytest
 import torch
+import torch.nn.functional as F
 from torch import nn
 
 from dqnlab.agent import Agent, epsilon_at, td_loss
 from dqnlab.config import resolve_config
+from dqnlab.networks import NatureCNN
+from dqnlab.replay import Batch
 
 
 @pytest.fixture
@@ -94,3 +98,70 @@ def test_sync_target_copies_weights(nature) -> None:
     agent.sync_target()
     assert agent.target.w.tolist() == [6.0, 7.0]
     assert not agent.target.w.requires_grad
+
+
+def _reference_updates(network: nn.Module, batches, config, steps: int) -> list[torch.Tensor]:
+    """The Nature DQN update written out plainly: default memory layout, F.huber_loss
+    summed over the batch, autograd, and DeepMind's RMSProp equations (NeuralQLearner.lua)."""
+    online = copy.deepcopy(network).to(memory_format=torch.contiguous_format)
+    target = copy.deepcopy(online)
+    params = list(online.parameters())
+    grad_avgs = [torch.zeros_like(p) for p in params]
+    square_avgs = [torch.zeros_like(p) for p in params]
+    decay, lr, eps = config.rmsprop_decay, config.learning_rate, config.rmsprop_epsilon
+
+    def q_values(net: nn.Module, frames: np.ndarray) -> torch.Tensor:
+        return net.head(net.features(torch.from_numpy(frames).float() / 255.0))
+
+    for batch in batches[:steps]:
+        actions = torch.from_numpy(batch.actions)
+        q_taken = q_values(online, batch.observations)[torch.arange(len(actions)), actions]
+        with torch.no_grad():
+            next_q = q_values(target, batch.next_observations).max(dim=1).values
+            not_terminal = 1.0 - torch.from_numpy(batch.terminals)
+            q_target = torch.from_numpy(batch.rewards) + config.discount * not_terminal * next_q
+        loss = F.huber_loss(q_taken, q_target, delta=config.td_error_clip, reduction="sum")
+        gradients = torch.autograd.grad(loss, params)
+        with torch.no_grad():
+            for p, delta, g, g2 in zip(params, gradients, grad_avgs, square_avgs, strict=True):
+                g.copy_(decay * g + (1 - decay) * delta)
+                g2.copy_(decay * g2 + (1 - decay) * delta * delta)
+                p.sub_(lr * delta / torch.sqrt(g2 - g * g + eps))
+    return params
+
+
+def _random_batches(count: int, seed: int) -> list[Batch]:
+    rng = np.random.default_rng(seed)
+    batches = []
+    for _ in range(count):
+        # Overlapping views of one window, as the replay memory returns them.
+        window = rng.integers(0, 256, size=(32, 5, 84, 84), dtype=np.uint8)
+        batches.append(
+            Batch(
+                observations=window[:, :4],
+                actions=rng.integers(0, 6, size=32).astype(np.int64),
+                rewards=rng.choice([-1.0, 0.0, 1.0], size=32).astype(np.float32),
+                terminals=(rng.random(32) < 0.2).astype(np.float32),
+                next_observations=window[:, 1:],
+            )
+        )
+    return batches
+
+
+@pytest.mark.parametrize(
+    "compile_update", [False, pytest.param(True, marks=pytest.mark.slow, id="compiled")]
+)
+def test_update_matches_a_plain_reference_implementation(nature, compile_update) -> None:
+    torch.manual_seed(3)
+    network = NatureCNN((4, 84, 84), num_actions=6)
+    expected = _reference_updates(network, _random_batches(4, seed=5), nature, steps=4)
+    agent = Agent(network, 6, nature, torch.device("cpu"), seed=0, compile_update=compile_update)
+    for batch in _random_batches(4, seed=5):
+        loss = agent.update(batch)
+    assert loss.shape == () and not loss.requires_grad
+    for actual, reference in zip(agent.online.parameters(), expected, strict=True):
+        torch.testing.assert_close(actual, reference, rtol=1e-5, atol=1e-8)
+    # The target network is left alone until sync_target.
+    for kept, initial in zip(agent.target.parameters(), network.parameters(), strict=False):
+        assert not torch.equal(kept, initial)  # network *is* agent.online, moved by updates
+    assert agent.updates == 4

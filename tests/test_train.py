@@ -10,6 +10,7 @@ import torch
 
 from dqnlab import checkpoints
 from dqnlab.agent import Agent
+from dqnlab.checkpoints import CheckpointStore
 from dqnlab.config import resolve_config
 from dqnlab.evaluate import load_run_config
 from dqnlab.train import prepare_run_dir, train
@@ -68,6 +69,8 @@ def test_run_directory_contents(tmp_path: Path) -> None:
     assert saved["eval_mean"] == best and saved["config"]["seed"] == 3
     assert int(saved["step"]) in (400, 800, 1200)
     last = checkpoints.load(run / "checkpoints" / "last.pt")
-    assert last["step"] == 1200 and "optimizer" in last["agent"]
+    assert last["step"] == 1200 and "network" in last
+    # The whole training state at every evaluation, the last two kept.
+    assert CheckpointStore(run).steps() == [800, 1200]
     assert any((run / "tensorboard").iterdir())
     assert not math.isnan(result.best_eval_mean)

@@ -63,8 +63,18 @@ class Agent:
     """Owns the online and target networks and the optimizer; acts and learns."""
 
     def __init__(
-        self, network: nn.Module, num_actions: int, config: Config, device: torch.device, seed: int
+        self,
+        network: nn.Module,
+        num_actions: int,
+        config: Config,
+        device: torch.device,
+        seed: int,
+        compile_update: bool = False,
     ) -> None:
+        """`compile_update` (opt-in): compile the loss with its backward pass and the
+        optimizer step with `torch.compile`. The same arithmetic, fused into fewer passes
+        over memory, so results agree up to float rounding; the first update then takes
+        tens of seconds to compile and needs a C++ compiler (on CPU)."""
         self.config = config
         self.device = device
         self.num_actions = num_actions
@@ -80,6 +90,10 @@ class Agent:
         )
         self.rng = np.random.default_rng(seed)
         self.updates = 0
+        self._optimizer_step = self.optimizer.step
+        if compile_update:
+            self._loss_and_backward = torch.compile(self._loss_and_backward)  # type: ignore[method-assign]
+            self._optimizer_step = torch.compile(self.optimizer.step)
 
     def act(self, stacked_observation: np.ndarray, epsilon: float) -> int:
         """Epsilon-greedy; ties between best actions go to a random one (Lua greedy)."""
@@ -100,22 +114,41 @@ class Agent:
         """One gradient step on a sampled minibatch; returns the loss (not synchronised)."""
         device = self.device
         self.online.train()
-        loss = td_loss(
-            self.online,
-            self.target,
+        # Gradients set to None are written by the backward pass rather than added to
+        # zeros: two fewer passes over the 1.7M gradients, the same values.
+        self.optimizer.zero_grad(set_to_none=True)
+        loss = self._loss_and_backward(
             torch.from_numpy(batch.observations).to(device),
             torch.from_numpy(batch.actions).to(device),
             torch.from_numpy(batch.rewards).to(device),
             torch.from_numpy(batch.terminals).to(device),
             torch.from_numpy(batch.next_observations).to(device),
+        )
+        self._optimizer_step()
+        self.updates += 1
+        return loss
+
+    def _loss_and_backward(
+        self,
+        observations: torch.Tensor,
+        actions: torch.Tensor,
+        rewards: torch.Tensor,
+        terminals: torch.Tensor,
+        next_observations: torch.Tensor,
+    ) -> torch.Tensor:
+        loss = td_loss(
+            self.online,
+            self.target,
+            observations,
+            actions,
+            rewards,
+            terminals,
+            next_observations,
             self.config.discount,
             self.config.td_error_clip,
             self.config.loss_reduction,
         )
-        self.optimizer.zero_grad(set_to_none=False)
         loss.backward()
-        self.optimizer.step()
-        self.updates += 1
         return loss.detach()
 
     def sync_target(self) -> None:
@@ -152,7 +185,13 @@ def is_image_observation(env: Environment) -> bool:
     return env.observation_dtype == np.uint8 and len(env.observation_shape) >= 2
 
 
-def build_agent(config: Config, env: Environment, device: torch.device, seed: int) -> Agent:
+def build_agent(
+    config: Config,
+    env: Environment,
+    device: torch.device,
+    seed: int,
+    compile_update: bool = False,
+) -> Agent:
     """The configured network for this environment, wrapped in an agent."""
     input_shape = (config.history_length, *env.observation_shape)
     network = build_network(
@@ -162,4 +201,4 @@ def build_agent(config: Config, env: Environment, device: torch.device, seed: in
         is_image_observation(env),
         config.mlp_hidden_sizes,
     )
-    return Agent(network, env.num_actions, config, device, seed)
+    return Agent(network, env.num_actions, config, device, seed, compile_update)

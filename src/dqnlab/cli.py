@@ -44,7 +44,9 @@ def train(
         Path | None, typer.Option(help="Where the run writes (default runs/ENV-PRESET-sSEED)")
     ] = None,
     device: Annotated[str, typer.Option(help="auto, cpu or cuda")] = "auto",
-    force: Annotated[bool, typer.Option(help="Overwrite an existing run directory")] = False,
+    force: Annotated[
+        bool, typer.Option(help="Start over in an existing run directory, deleting that run")
+    ] = False,
     progress: Annotated[bool, typer.Option(help="Show the live progress bar")] = True,
 ) -> None:
     """Train a DQN; writes config, CSV logs, TensorBoard events and checkpoints to the run dir."""
@@ -52,7 +54,6 @@ def train(
     from dqnlab.config import parse_overrides, resolve_config
     from dqnlab.envs import check_env_name, is_atari
     from dqnlab.train import prepare_run_dir
-    from dqnlab.train import train as run_training
 
     check_env_name(env)
     preset = preset or ("nature" if is_atari(env) else "classic")
@@ -65,9 +66,48 @@ def train(
         or Path("runs")
         / f"{env.replace(':', '_').replace('/', '_')}-{Path(preset).stem}-s{config.seed}"
     )
-    prepare_run_dir(run_dir, force)
-    typer.echo(f"dqnlab: training {env} with preset {preset} on {torch_device} into {run_dir}")
-    result = run_training(config, run_dir, torch_device, progress=progress)
+    resume = prepare_run_dir(run_dir, force, config)
+    verb = "resuming" if resume else "training"
+    typer.echo(f"dqnlab: {verb} {env} with preset {preset} on {torch_device} into {run_dir}")
+    _run(config, run_dir, torch_device, progress, resume)
+
+
+@app.command()
+def resume(
+    run_dir: Annotated[Path, typer.Argument(help="A run directory written by `dqnlab train`")],
+    steps: Annotated[
+        int | None, typer.Option(help="A new training budget in agent steps (total_steps)")
+    ] = None,
+    device: Annotated[str, typer.Option(help="auto, cpu or cuda")] = "auto",
+    progress: Annotated[bool, typer.Option(help="Show the live progress bar")] = True,
+) -> None:
+    """Carry on a run from its newest complete checkpoint, exactly where it stopped."""
+    import dataclasses
+
+    from dqnlab.agent import resolve_device
+    from dqnlab.config import config_to_toml
+    from dqnlab.evaluate import CONFIG_FILE, load_run_config
+
+    config = load_run_config(run_dir)
+    if steps is not None and steps != config.total_steps:
+        config = dataclasses.replace(config, total_steps=steps)
+        (run_dir / CONFIG_FILE).write_text(config_to_toml(config))
+    torch_device = resolve_device(device)
+    typer.echo(f"dqnlab: resuming {config.env} on {torch_device} from {run_dir}")
+    _run(config, run_dir, torch_device, progress, resume=True)
+
+
+def _run(config, run_dir: Path, device, progress: bool, resume: bool) -> None:  # noqa: ANN001
+    from dqnlab.train import train as run_training
+
+    result = run_training(config, run_dir, device, progress=progress, resume=resume)
+    if result.interrupted:
+        typer.echo(
+            f"dqnlab: stopped by {result.interrupted} at step {result.steps} after saving a "
+            f"checkpoint; resume with: dqnlab resume {run_dir}",
+            err=True,
+        )
+        sys.exit(130 if result.interrupted == "SIGINT" else 143)
     typer.echo(
         f"dqnlab: {result.steps} steps, {result.frames} frames in {result.seconds:.0f} s "
         f"({result.frames_per_second:.0f} frames/s overall, {result.learning_frames_per_second:.0f} "

@@ -23,6 +23,7 @@ if sys.version_info >= (3, 11):
 else:  # pragma: no cover
     import tomli as tomllib
 
+from dqnlab import checkpoints
 from dqnlab.errors import ConfigError
 
 
@@ -92,6 +93,15 @@ class Config:
     )
     # Budget.
     total_steps: int = _setting(50_000_000, "Training budget in agent steps")
+    # Checkpoints (the whole training state; a killed run resumes exactly).
+    checkpoint_period_minutes: float = _setting(
+        30.0, "Wall-clock minutes between checkpoints, besides one at every evaluation"
+    )
+    checkpoint_period_steps: int = _setting(0, "Agent steps between checkpoints (0: off)")
+    checkpoints_kept: int = _setting(2, "Complete checkpoints kept on disk")
+    on_checkpoint_error: str = _setting(
+        "stop", "stop, or continue training when a checkpoint cannot be written"
+    )
 
     def __post_init__(self) -> None:
         _validate(self)
@@ -110,6 +120,7 @@ _CHOICES = {
     "resize_interpolation": ("area", "bilinear"),
     "loss_reduction": ("sum", "mean"),
     "optimizer": ("deepmind_rmsprop", "rmsprop", "adam"),
+    "on_checkpoint_error": ("stop", "continue"),
 }
 
 
@@ -122,7 +133,8 @@ def _validate(config: Config) -> None:
         "action_repeat_frames", "screen_size", "history_length", "replay_capacity",
         "batch_size", "update_period_steps", "target_update_steps", "learning_rate",
         "eval_period_steps", "eval_steps", "final_eval_episodes", "total_steps",
-        "replay_start_steps", "rmsprop_epsilon", "adam_epsilon",
+        "replay_start_steps", "rmsprop_epsilon", "adam_epsilon", "checkpoints_kept",
+        "checkpoint_period_minutes",
     )  # fmt: skip
     for name in positive:
         if getattr(config, name) <= 0:
@@ -130,6 +142,7 @@ def _validate(config: Config) -> None:
     non_negative = (
         "seed", "noop_max_frames", "max_episode_frames", "reward_clip", "td_error_clip",
         "epsilon_decay_steps", "eval_max_episode_frames", "final_eval_max_episode_frames",
+        "checkpoint_period_steps",
     )  # fmt: skip
     for name in non_negative:
         if getattr(config, name) < 0:
@@ -148,6 +161,13 @@ def _validate(config: Config) -> None:
         )
     if any(width <= 0 for width in config.mlp_hidden_sizes):
         raise ConfigError(f"mlp_hidden_sizes = {list(config.mlp_hidden_sizes)} must be positive")
+
+
+def config_fingerprint(config: Config) -> str:
+    """What a checkpoint must match to be resumed: every setting but the step budget."""
+    values = config.to_dict()
+    values.pop("total_steps")
+    return checkpoints.config_fingerprint(values)
 
 
 def derive_seeds(seed: int, count: int) -> list[int]:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import os
 from pathlib import Path
 from typing import Any
 
@@ -14,14 +15,23 @@ EVALUATION_FIELDS = (
 
 
 class RunLogger:
-    """Appends rows to `episodes.csv` and `evaluations.csv` and scalars to TensorBoard."""
+    """Appends rows to `episodes.csv` and `evaluations.csv` and scalars to TensorBoard.
 
-    def __init__(self, run_dir: Path, tensorboard: bool = True) -> None:
+    `resume_step`: the step of the checkpoint a run resumes from (0: none, start over).
+    Rows and events logged after it (by the run that was killed) are dropped, since the
+    resumed run logs them again: no duplicates, no gaps.
+    """
+
+    def __init__(
+        self, run_dir: Path, tensorboard: bool = True, resume_step: int | None = None
+    ) -> None:
         self.run_dir = run_dir
         self._files = {}
         self._writers = {}
         for name, fields in (("episodes", EPISODE_FIELDS), ("evaluations", EVALUATION_FIELDS)):
             path = run_dir / f"{name}.csv"
+            if resume_step is not None and path.exists():
+                _truncate_after(path, resume_step)
             new = not path.exists()
             handle = path.open("a", newline="")
             writer = csv.DictWriter(handle, fieldnames=fields)
@@ -33,7 +43,10 @@ class RunLogger:
         if tensorboard:
             from torch.utils.tensorboard import SummaryWriter
 
-            self.tensorboard = SummaryWriter(log_dir=str(run_dir / "tensorboard"))
+            self.tensorboard = SummaryWriter(
+                log_dir=str(run_dir / "tensorboard"),
+                purge_step=None if resume_step is None else resume_step + 1,
+            )
 
     def episode(self, row: dict[str, Any]) -> None:
         self._writers["episodes"].writerow(row)
@@ -53,8 +66,10 @@ class RunLogger:
                 self.tensorboard.add_scalar(name, value, step)
 
     def flush(self) -> None:
+        """Everything logged so far reaches the disk (called before every checkpoint)."""
         for handle in self._files.values():
             handle.flush()
+            os.fsync(handle.fileno())
         if self.tensorboard:
             self.tensorboard.flush()
 
@@ -64,6 +79,20 @@ class RunLogger:
             handle.close()
         if self.tensorboard:
             self.tensorboard.close()
+
+
+def _truncate_after(path: Path, step: int) -> None:
+    """Keep the header and the rows whose step is at most `step`; drop a torn last line."""
+    lines = path.read_text().splitlines(keepends=True)
+    kept = lines[:1]
+    for line in lines[1:]:
+        if not line.endswith("\n"):
+            break  # half-written by a killed process
+        if int(line.split(",", 1)[0]) <= step:
+            kept.append(line)
+    temporary = path.with_name(path.name + ".tmp")
+    temporary.write_text("".join(kept))
+    os.replace(temporary, path)
 
 
 def read_csv(path: Path) -> list[dict[str, str]]:

@@ -50,8 +50,11 @@ class NatureCNN(nn.Module):
         self.features.to(memory_format=torch.channels_last)
 
     def forward(self, observations: torch.Tensor) -> torch.Tensor:
-        planes = observations.flatten(1, -3).contiguous(memory_format=torch.channels_last)
-        return self.head(self.features(planes.float().div_(255.0)))
+        planes = observations.flatten(1, -3)
+        # True division turns uint8 into float32 in one pass; reordering to channels-last
+        # after that, in float32, measured faster than reordering the bytes first.
+        scaled = torch.div(planes, 255.0) if planes.dtype == torch.uint8 else planes.float() / 255.0
+        return self.head(self.features(scaled.contiguous(memory_format=torch.channels_last)))
 
 
 class MLP(nn.Module):

@@ -73,6 +73,7 @@ class ReplayMemory:
         self.is_last = np.zeros(capacity, dtype=np.bool_)
         self.position = 0  # next slot to write
         self.size = 0
+        self.writes = 0  # slots written since creation: tells a checkpoint what changed
         self.rng = np.random.default_rng(seed)
         # Sampling buffers, reused by every call: a window of history + 1 slots per sample.
         window = history_length + 1
@@ -113,6 +114,7 @@ class ReplayMemory:
         self.is_last[slot] = is_last
         self.position = (slot + 1) % self.capacity
         self.size = min(self.size + 1, self.capacity)
+        self.writes += 1
 
     # Sampling -------------------------------------------------------------------------
 
@@ -167,23 +169,30 @@ class ReplayMemory:
 
     # State ----------------------------------------------------------------------------
 
-    def state_dict(self) -> dict[str, Any]:
+    @property
+    def arrays(self) -> dict[str, np.ndarray]:
+        """The preallocated arrays, by name: what a checkpoint stores chunk by chunk."""
         return {
             "frames": self.frames,
             "actions": self.actions,
             "rewards": self.rewards,
             "terminals": self.terminals,
             "is_last": self.is_last,
+        }
+
+    def state_dict(self) -> dict[str, Any]:
+        """The small state; the arrays are saved separately (`arrays`)."""
+        return {
             "position": self.position,
             "size": self.size,
+            "writes": self.writes,
             "rng": self.rng.bit_generator.state,
         }
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
-        for name in ("frames", "actions", "rewards", "terminals", "is_last"):
-            getattr(self, name)[...] = state[name]
         self.position = int(state["position"])
         self.size = int(state["size"])
+        self.writes = int(state["writes"])
         self.rng.bit_generator.state = state["rng"]
 
 

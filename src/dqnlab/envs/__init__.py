@@ -39,6 +39,10 @@ class Environment(Protocol):
 
     def close(self) -> None: ...
 
+    def state_dict(self) -> dict: ...
+
+    def load_state_dict(self, state: dict) -> None: ...
+
 
 def is_atari(env_name: str) -> bool:
     return env_name in game_names()

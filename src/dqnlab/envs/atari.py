@@ -25,8 +25,12 @@ alone). No-op frames are not repeated and their rewards are dropped.
 
 from __future__ import annotations
 
+import pickle
+from typing import Any
+
 import cv2
 import numpy as np
+import torch
 from ale_py import Action, ALEInterface, LoggerMode, roms
 
 from dqnlab.errors import EnvError
@@ -278,6 +282,31 @@ class AtariEnv:
         if self.max_episode_frames and self._game_frames >= self.max_episode_frames:
             self.truncated = not self.game_over
         return self._observe(), reward, terminated, self.truncated and not terminated
+
+    def state_dict(self) -> dict[str, Any]:
+        """Everything needed to continue exactly: the emulator (with its RNG), the pool."""
+        return {
+            "ale": pickle.dumps(self.ale.cloneState(include_rng=True)),
+            "rng": self.rng.bit_generator.state,
+            "screens": torch.from_numpy(self._screens.copy()),
+            "newest": self._newest,
+            "lives": self._lives,
+            "game_frames": self._game_frames,
+            "frames": self.frames,
+            "game_over": self.game_over,
+            "truncated": self.truncated,
+        }
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        self.ale.restoreState(pickle.loads(state["ale"]))
+        self.rng.bit_generator.state = state["rng"]
+        self._screens[...] = state["screens"].numpy()
+        self._newest = int(state["newest"])
+        self._lives = int(state["lives"])
+        self._game_frames = int(state["game_frames"])
+        self.frames = int(state["frames"])
+        self.game_over = bool(state["game_over"])
+        self.truncated = bool(state["truncated"])
 
     @property
     def game_ended(self) -> bool:

@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+import pickle
+import warnings
+from typing import Any
+
 import gymnasium as gym
 import numpy as np
 
@@ -56,6 +60,38 @@ class GymnasiumEnv:
         self.frames = 0  # for a non-Atari environment a frame is a step
         self.game_over = True
         self.truncated = False
+
+    def state_dict(self) -> dict[str, Any]:
+        """The whole environment pickled (Gymnasium envs such as CartPole pickle with their
+        RNG); an environment that cannot be pickled resumes with a new episode."""
+        try:
+            env_bytes: bytes | None = pickle.dumps(self.env)
+        except Exception:  # noqa: BLE001 - any unpicklable environment
+            env_bytes = None
+        return {
+            "env": env_bytes,
+            "seed": self._seed,
+            "episode_steps": self._episode_steps,
+            "frames": self.frames,
+            "game_over": self.game_over,
+            "truncated": self.truncated,
+        }
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        if state["env"] is None:
+            warnings.warn(
+                "this environment cannot be pickled: the resumed run starts a new episode",
+                stacklevel=2,
+            )
+            self.game_over = True
+        else:
+            self.env.close()
+            self.env = pickle.loads(state["env"])
+            self.game_over = bool(state["game_over"])
+        self._seed = state["seed"]
+        self._episode_steps = int(state["episode_steps"])
+        self.frames = int(state["frames"])
+        self.truncated = bool(state["truncated"])
 
     @property
     def game_ended(self) -> bool:
