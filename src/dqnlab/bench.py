@@ -111,15 +111,27 @@ def run_benchmark(
         timings.append(time.perf_counter() - start)
     figures["update_ms"] = float(np.median(timings) * 1e3)
 
-    # Training after the replay-start phase, alternating with the peer when asked.
-    learner.steps = config.replay_start_steps
+    # Training after the replay-start phase, alternating with the peer when asked. Measured
+    # where epsilon has reached its final 0.1, as for 49 of the 50M steps of a Nature run
+    # (at the start of the anneal nearly every action is random and skips the network).
+    learner.steps = config.replay_start_steps + config.epsilon_decay_steps
     for _ in range(100):
         learner.advance()
     train_runs, peer_runs = [], []
     for _ in range(rounds):
         train_runs.append(_measure_training(learner, steps))
         if peers:
-            peer_runs.append(run_sb3_dqn(env, steps, peer_learning_starts, seed, str(device)))
+            # The peer's epsilon reaches 0.1 by the end of its replay start: measured alike.
+            peer_runs.append(
+                run_sb3_dqn(
+                    env,
+                    steps,
+                    peer_learning_starts,
+                    seed,
+                    str(device),
+                    epsilon_decay_steps=peer_learning_starts,
+                )  # fmt: skip
+            )
     figures["train_frames_per_second"] = float(np.mean([run[0] for run in train_runs]))
     figures["train_frames_per_second_runs"] = [round(run[0], 1) for run in train_runs]
     for name, fraction in train_runs[-1][1].items():

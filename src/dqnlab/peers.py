@@ -69,6 +69,7 @@ def make_sb3_dqn(
     buffer_size: int,
     seed: int = 0,
     device: str = "cpu",
+    epsilon_decay_steps: int = EPSILON_DECAY_STEPS,
 ) -> DQN:
     """SB3's DQN with the Nature hyperparameters on one standard SB3 Atari environment.
 
@@ -96,7 +97,7 @@ def make_sb3_dqn(
         stacked_env,
         buffer_size=buffer_size,
         learning_starts=learning_starts,
-        exploration_fraction=EPSILON_DECAY_STEPS / total_steps,
+        exploration_fraction=epsilon_decay_steps / total_steps,
         policy_kwargs={
             "optimizer_class": torch.optim.RMSprop,
             "optimizer_kwargs": NATURE_RMSPROP_KWARGS,
@@ -142,6 +143,7 @@ def run_sb3_dqn(
     seed: int = 0,
     device: str = "cpu",
     buffer_size: int | None = None,
+    epsilon_decay_steps: int = EPSILON_DECAY_STEPS,
 ) -> dict[str, Any]:
     """Train SB3's DQN for `learning_starts + steps` agent steps; time the last `steps`.
 
@@ -161,7 +163,9 @@ def run_sb3_dqn(
 
     total_steps = learning_starts + steps
     buffer_size = total_steps if buffer_size is None else buffer_size
-    model = make_sb3_dqn(env, total_steps, learning_starts, buffer_size, seed=seed, device=device)
+    model = make_sb3_dqn(
+        env, total_steps, learning_starts, buffer_size, seed, device, epsilon_decay_steps
+    )
     stacked_env = model.get_env()
     assert stacked_env is not None
     ale = stacked_env.unwrapped.envs[0].unwrapped.ale  # type: ignore[attr-defined]
