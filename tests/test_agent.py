@@ -154,14 +154,15 @@ def _random_batches(count: int, seed: int) -> list[Batch]:
 def test_update_matches_a_plain_reference_implementation(nature, compile_update) -> None:
     torch.manual_seed(3)
     network = NatureCNN((4, 84, 84), num_actions=6)
+    initial = [p.detach().clone() for p in network.parameters()]
     expected = _reference_updates(network, _random_batches(4, seed=5), nature, steps=4)
     agent = Agent(network, 6, nature, torch.device("cpu"), seed=0, compile_update=compile_update)
     for batch in _random_batches(4, seed=5):
         loss = agent.update(batch)
     assert loss.shape == () and not loss.requires_grad
+    assert agent.updates == 4
     for actual, reference in zip(agent.online.parameters(), expected, strict=True):
         torch.testing.assert_close(actual, reference, rtol=1e-5, atol=1e-8)
-    # The target network is left alone until sync_target.
-    for kept, initial in zip(agent.target.parameters(), network.parameters(), strict=False):
-        assert not torch.equal(kept, initial)  # network *is* agent.online, moved by updates
-    assert agent.updates == 4
+    # The target network keeps the initial weights until sync_target.
+    for kept, start in zip(agent.target.parameters(), initial, strict=True):
+        assert torch.equal(kept, start)

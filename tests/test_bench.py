@@ -13,8 +13,10 @@ def test_benchmark_figures_on_a_small_replay() -> None:
         "pong", steps=40, replay_capacity=3000, device=torch.device("cpu"), update_repeats=3
     )
     assert figures["replay_bytes_per_transition"] == 84 * 84 + 10
-    # Every slot was written, so the replay is resident: at least its arrays' size.
-    assert figures["replay_resident_bytes"] >= 0.95 * 3000 * (84 * 84 + 10)
+    # Every slot was written, so the process holds at least the replay's arrays. (The
+    # growth measured can be smaller than the arrays in a process that freed memory before.)
+    assert figures["peak_resident_bytes"] >= 3000 * (84 * 84 + 10)
+    assert figures["replay_resident_bytes"] <= 1.05 * 3000 * (84 * 84 + 10) + 2**20
     for name in ("sample_us", "update_ms", "train_frames_per_second", "eval_frames_per_second"):
         assert figures[name] > 0, name
     assert figures["device"] == "cpu" and figures["threads"] >= 1

@@ -98,3 +98,11 @@ def test_channels_last_gives_the_values_of_the_default_layout() -> None:
     ))  # fmt: skip
     network.features.to(memory_format=torch.channels_last)
     torch.testing.assert_close(network(frames), expected, rtol=1e-5, atol=1e-5)
+
+
+def test_uint8_frames_are_scaled_in_float32_exactly_as_divided_by_255() -> None:
+    torch.manual_seed(2)
+    network = NatureCNN((4, 84, 84), num_actions=4)
+    frames = torch.randint(0, 256, (6, 4, 84, 84), dtype=torch.uint8)
+    scaled = (frames.float() / 255.0).contiguous(memory_format=torch.channels_last)
+    assert torch.equal(network(frames), network.head(network.features(scaled)))

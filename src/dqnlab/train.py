@@ -28,7 +28,13 @@ from tqdm import tqdm
 from dqnlab import checkpoints
 from dqnlab.agent import build_agent, epsilon_at
 from dqnlab.checkpoints import CheckpointStore, written_slots
-from dqnlab.config import Config, config_fingerprint, config_to_toml, derive_seeds
+from dqnlab.config import (
+    RESUMABLE_CHANGES,
+    Config,
+    config_fingerprint,
+    config_to_toml,
+    derive_seeds,
+)
 from dqnlab.envs import make_env
 from dqnlab.errors import DqnlabError, ResourceError
 from dqnlab.evaluate import CONFIG_FILE, EvaluationResult, load_run_config, play
@@ -58,13 +64,13 @@ def prepare_run_dir(run_dir: Path, force: bool, config: Config | None = None) ->
         elif is_run and config is not None:
             saved = load_run_config(run_dir)
             if config_fingerprint(saved) == config_fingerprint(config):
-                if saved.total_steps != config.total_steps:
+                if saved != config:  # a new budget or checkpoint cadence
                     (run_dir / CONFIG_FILE).write_text(config_to_toml(config))
                 return True
             differing = [
                 name
                 for name, value in config.to_dict().items()
-                if name != "total_steps" and saved.to_dict()[name] != value
+                if name not in RESUMABLE_CHANGES and saved.to_dict()[name] != value
             ]
             raise DqnlabError(
                 f"run directory {run_dir} holds a run with other settings "
