@@ -24,7 +24,7 @@ import torch
 
 from dqnlab.checkpoints import CheckpointStore
 from dqnlab.config import config_fingerprint, resolve_config
-from dqnlab.errors import DqnlabError
+from dqnlab.errors import DqnlabError, ResourceError
 from dqnlab.evaluate import load_run_config
 from dqnlab.replay import ReplayMemory
 from dqnlab.train import Learner, TrainingDiverged, prepare_run_dir, train
@@ -157,15 +157,16 @@ def test_sigkill_at_random_moments_then_resume_is_bit_identical(tmp_path: Path, 
     assert_same_run(reference, resumed)
 
 
-def test_sigterm_checkpoints_and_says_how_to_resume(tmp_path: Path) -> None:
+@pytest.mark.parametrize(("stop", "status"), [(signal.SIGTERM, 143), (signal.SIGINT, 130)])
+def test_a_stop_signal_checkpoints_and_says_how_to_resume(tmp_path: Path, stop, status) -> None:
     reference, resumed = tmp_path / "reference", tmp_path / "resumed"
     code, stderr = finish(dqnlab("train", *CARTPOLE, "--run-dir", str(reference)))
     assert code == 0, stderr
     process = dqnlab("train", *CARTPOLE, "--run-dir", str(resumed))
     assert wait_for_checkpoint(resumed, process, after=0)
-    process.send_signal(signal.SIGTERM)
+    process.send_signal(stop)
     code, stderr = finish(process)
-    assert code == 143, stderr
+    assert code == status, stderr
     assert f"resume with: dqnlab resume {resumed}" in stderr
     stopped_at = int(stderr.split(" at step ")[1].split()[0])
     assert CheckpointStore(resumed).steps()[-1] == stopped_at  # the step it finished
@@ -266,3 +267,17 @@ def test_disk_full_while_checkpointing(tmp_path: Path, monkeypatch) -> None:
     config = small_config(on_checkpoint_error="continue")
     result = train(config, run, torch.device("cpu"), progress=False, tensorboard=False)
     assert result.steps == 400  # went on despite the failed checkpoints
+
+
+def test_refuses_at_start_when_the_disk_cannot_hold_the_checkpoints(
+    tmp_path: Path, monkeypatch
+) -> None:
+    import shutil
+    from collections import namedtuple
+
+    usage = namedtuple("usage", "total used free")
+    monkeypatch.setattr(shutil, "disk_usage", lambda path: usage(10**9, 10**9 - 1000, 1000))
+    run = tmp_path / "run"
+    prepare_run_dir(run, force=False)
+    with pytest.raises(ResourceError, match="GiB of disk"):
+        train(small_config(), run, torch.device("cpu"), progress=False, tensorboard=False)

@@ -183,13 +183,21 @@ def bench(
     peers: Annotated[
         bool, typer.Option(help="Also run Stable-Baselines3's DQN (dqnlab[bench]), alternating")
     ] = False,
+    compile_update: Annotated[
+        bool, typer.Option("--compile", help="Measure with the update compiled (compile_update)")
+    ] = False,
 ) -> None:
     """Measure training and evaluation throughput, the update, and replay memory use."""
     from dqnlab.agent import resolve_device
     from dqnlab.bench import run_benchmark
 
     figures = run_benchmark(
-        env, steps, replay_capacity, resolve_device(device), peers=peers, compile_update=compile
+        env,
+        steps,
+        replay_capacity,
+        resolve_device(device),
+        peers=peers,
+        compile_update=compile_update,
     )
     for name, value in figures.items():
         typer.echo(f"{name:40s} {value:.4g}" if isinstance(value, float) else f"{name:40s} {value}")
