@@ -6,10 +6,13 @@ one (a number of whole games of at most 5 minutes each).
 
 The periodic one plays one environment (`play`): a step budget shared by several games
 in parallel would end other games than the sequential protocol. The final one counts
-whole games, so `play_games` plays them on several environments in lockstep: one batched
-forward pass per lockstep, the environments stepped by worker processes, one per core.
-Processes, not threads: ale-py holds the GIL while it emulates (ALEInterface.act), so
-threads stepping Atari games take turns on one core.
+whole games, so `play_games` plays them on several environments in lockstep, acted for
+in two halves with a batched forward pass each, the environments stepped by worker
+processes, one per core, one half while the player acts for the other. Processes, not
+threads: ale-py holds the GIL while it emulates (ALEInterface.act; a thread emulating
+3,000 frames in one call stalls every other Python thread for those 170 ms), so threads
+stepping Atari games take turns on one core. OpenCV releases it, but emulation is most
+of a step.
 """
 
 from __future__ import annotations
@@ -20,7 +23,7 @@ import os
 import sys
 import time
 import traceback
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from multiprocessing.connection import Connection
 from pathlib import Path
@@ -108,7 +111,7 @@ def play(
 
 # Whole games on several environments in lockstep -------------------------------------
 
-# What an environment did in the last lockstep (one byte per environment).
+# What an environment did in its last step (one byte per environment).
 _RUNNING = 0  # its episode goes on: push the observation on its history
 _NEW_EPISODE = 1  # reset (a game start, or an episode that ended without a game end)
 _NEXT_GAME = 2  # a game ended and the environment started its next game
@@ -119,7 +122,7 @@ _LOCKSTEP_FIELDS = ("actions", "observations", "rewards", "statuses", "frames")
 
 @dataclass
 class _Lockstep:
-    """What the player and the environments exchange at each lockstep, one row per env."""
+    """What the player and the environments exchange, one row per environment."""
 
     actions: np.ndarray  # (envs,) int64, written by the player
     observations: np.ndarray  # (envs, *frame_shape): each environment's newest observation
@@ -151,7 +154,11 @@ class _Lockstep:
 
 
 class _EnvGroup:
-    """Some of the lockstep environments, each with the number of games it has to play."""
+    """Some of the environments, each with the number of games it has to play.
+
+    The player acts for the environments in `batches` (ranges of environment ids), one
+    forward pass each; `step(k)` steps this group's environments of batch k.
+    """
 
     def __init__(
         self,
@@ -160,43 +167,43 @@ class _EnvGroup:
         env_ids: Sequence[int],
         seeds: Sequence[int],
         games: Sequence[int],
+        batches: Sequence[range],
         lockstep: _Lockstep,
     ) -> None:
-        self.env_ids = list(env_ids)
-        self.envs: list[Environment] = []
+        self.envs: dict[int, Environment] = {}
         try:
-            for i in self.env_ids:
-                self.envs.append(
-                    make_env(
-                        config, training=False, seed=seeds[i], max_episode_frames=max_episode_frames
-                    )
+            for i in env_ids:
+                self.envs[i] = make_env(
+                    config, training=False, seed=seeds[i], max_episode_frames=max_episode_frames
                 )
         except BaseException:
             self.close()
             raise
-        self.games_left = [games[i] for i in self.env_ids]
+        self.games_left = {i: games[i] for i in env_ids}
+        self.batches = [[i for i in batch if i in self.envs] for batch in batches]
         self.lockstep = lockstep
 
     def start(self) -> None:
         """A new game on every environment."""
         lockstep = self.lockstep
-        for i, env in zip(self.env_ids, self.envs, strict=True):
+        for i, env in self.envs.items():
             lockstep.observations[i] = env.reset(new_game=True)
             lockstep.rewards[i] = 0.0
             lockstep.statuses[i] = _NEW_EPISODE
             lockstep.frames[i] = env.frames
 
-    def step(self) -> None:
-        """One step of every environment with a game left, then its reset if needed (as
-        `play`: the next game starts right after a game end, with its own no-ops)."""
+    def step(self, batch: int) -> None:
+        """One step of each environment of the batch with a game left, then its reset if
+        needed (as in `play`: the next game starts right after a game end, with no-ops)."""
         lockstep = self.lockstep
-        for k, (i, env) in enumerate(zip(self.env_ids, self.envs, strict=True)):
-            if not self.games_left[k]:
+        for i in self.batches[batch]:
+            if not self.games_left[i]:
                 continue
+            env = self.envs[i]
             observation, reward, terminated, truncated = env.step(int(lockstep.actions[i]))
             if env.game_ended:
-                self.games_left[k] -= 1
-                if self.games_left[k]:
+                self.games_left[i] -= 1
+                if self.games_left[i]:
                     observation, status = env.reset(), _NEXT_GAME
                 else:
                     status = _FINISHED
@@ -209,8 +216,15 @@ class _EnvGroup:
             lockstep.statuses[i] = status
             lockstep.frames[i] = env.frames
 
+    # The player's interface, shared with _EnvWorkers: here a step is done when submitted.
+    def submit(self, batch: int) -> None:
+        self.step(batch)
+
+    def wait(self) -> None:
+        pass
+
     def close(self) -> None:
-        for env in self.envs:
+        for env in self.envs.values():
             env.close()
 
     def __enter__(self) -> _EnvGroup:
@@ -220,27 +234,19 @@ class _EnvGroup:
         self.close()
 
 
-def _worker(
-    connection: Connection,
-    config: Config,
-    max_episode_frames: int,
-    env_ids: list[int],
-    seeds: list[int],
-    games: list[int],
-    buffers: dict[str, Any],
-    layout: dict[str, Any],
-) -> None:
-    """A worker process: builds its environments, then runs the player's commands.
+_START = b"start"
+_CLOSE = b"close"
 
-    Each command is answered with an empty message, or with the traceback of a failure.
-    """
+
+def _worker(connection: Connection, group_arguments: tuple, buffers: dict, layout: dict) -> None:
+    """A worker process: builds its environments, then runs the player's commands in order
+    (start, a batch index to step, close). Each command is answered with an empty message,
+    or with the traceback of a failure."""
     import signal
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the player's to handle
     try:
-        group = _EnvGroup(
-            config, max_episode_frames, env_ids, seeds, games, _Lockstep.over(buffers, layout)
-        )
+        group = _EnvGroup(*group_arguments, _Lockstep.over(buffers, layout))
     except Exception:  # noqa: BLE001 - sent to the player, which raises it
         connection.send_bytes(traceback.format_exc().encode())
         return
@@ -249,12 +255,12 @@ def _worker(
         while True:
             command = connection.recv_bytes()
             try:
-                if command == b"step":
-                    group.step()
-                elif command == b"start":
+                if command == _CLOSE:
+                    return
+                if command == _START:
                     group.start()
                 else:
-                    return
+                    group.step(command[0])
             except Exception:  # noqa: BLE001
                 connection.send_bytes(traceback.format_exc().encode())
                 return
@@ -266,7 +272,8 @@ def _process_context() -> multiprocessing.context.BaseContext:
 
     Plain fork would copy the player's thread pools (torch, OpenCV) into a process that
     has no threads, a known cause of deadlocks; spawn would import torch in every worker
-    (about 2 s each).
+    (about 2 s each). Like spawn, it runs the main script again in each worker, so a
+    script must guard its top level with `if __name__ == "__main__":`.
     """
     if "forkserver" not in multiprocessing.get_all_start_methods():
         return multiprocessing.get_context("spawn")
@@ -279,7 +286,8 @@ class _EnvWorkers:
     """Worker processes stepping the environments, env i on worker i mod `workers`.
 
     Observations, actions and rewards travel through shared memory; a pipe per worker
-    carries only the commands and their acknowledgements.
+    carries the commands and their acknowledgements. Commands queue up: the player can
+    submit a batch, act for another while the workers step it, then wait.
     """
 
     def __init__(
@@ -288,6 +296,7 @@ class _EnvWorkers:
         max_episode_frames: int,
         seeds: Sequence[int],
         games: Sequence[int],
+        batches: Sequence[range],
         layout: dict[str, Any],
         workers: int,
     ) -> None:
@@ -299,22 +308,17 @@ class _EnvWorkers:
         self.lockstep = _Lockstep.over(self.buffers, layout)
         self.connections: list[Connection] = []
         self.processes: list[multiprocessing.process.BaseProcess] = []
+        self.pending = 0  # commands submitted and not yet acknowledged, per worker
         num_envs = len(seeds)
         try:
             for w in range(workers):
+                env_ids = list(range(w, num_envs, workers))
+                group_arguments = (config, max_episode_frames, env_ids, list(seeds),
+                                   list(games), list(batches))  # fmt: skip
                 player_end, worker_end = context.Pipe()
                 process = context.Process(  # type: ignore[attr-defined]
                     target=_worker,
-                    args=(
-                        worker_end,
-                        config,
-                        max_episode_frames,
-                        list(range(w, num_envs, workers)),
-                        list(seeds),
-                        list(games),
-                        self.buffers,
-                        layout,
-                    ),  # fmt: skip
+                    args=(worker_end, group_arguments, self.buffers, layout),
                     name=f"dqnlab-eval-{w}",
                     daemon=True,
                 )
@@ -322,38 +326,44 @@ class _EnvWorkers:
                 worker_end.close()
                 self.connections.append(player_end)
                 self.processes.append(process)
-            self._receive_all()  # every worker has built its environments
+            self.pending = 1
+            self.wait()  # every worker has built its environments
         except BaseException:
             self.close()
             raise
 
     def start(self) -> None:
-        self._run(b"start")
+        self._send(_START)
+        self.wait()
 
-    def step(self) -> None:
-        self._run(b"step")
+    def submit(self, batch: int) -> None:
+        self._send(bytes((batch,)))
 
-    def _run(self, command: bytes) -> None:
+    def _send(self, command: bytes) -> None:
         for connection in self.connections:
             connection.send_bytes(command)
-        self._receive_all()
+        self.pending += 1
 
-    def _receive_all(self) -> None:
+    def wait(self) -> None:
+        """Wait for the oldest submitted command to be done by every worker."""
         for w, connection in enumerate(self.connections):
             try:
                 reply = connection.recv_bytes()
             except EOFError:
                 self.processes[w].join(timeout=1)
                 raise DqnlabError(
-                    f"evaluation worker {w} died (exit code {self.processes[w].exitcode})"
+                    f"evaluation worker {w} died (exit code {self.processes[w].exitcode}); "
+                    "if its error says the main module is being imported, guard your "
+                    'script with `if __name__ == "__main__":`'
                 ) from None
             if reply:
                 raise DqnlabError(f"evaluation worker {w} failed:\n{reply.decode()}")
+        self.pending -= 1
 
     def close(self) -> None:
         for connection in self.connections:
             with contextlib.suppress(OSError):  # a worker that died has closed its end
-                connection.send_bytes(b"close")
+                connection.send_bytes(_CLOSE)
         for process in self.processes:
             process.join(timeout=10)
             if process.is_alive():
@@ -368,6 +378,70 @@ class _EnvWorkers:
 
     def __exit__(self, *exc_info: object) -> None:
         self.close()
+
+
+class _ActingBatch:
+    """A range of environments acted for with one forward pass: their histories, stacked.
+
+    Histories are kept twice and written alternately, so that a push is one copy without
+    overlap; the inputs buffer gathers the environments still playing once some are done.
+    """
+
+    def __init__(
+        self,
+        index: int,
+        env_ids: range,
+        history_length: int,
+        frame_shape: tuple[int, ...],
+        dtype: np.dtype,
+    ) -> None:
+        self.index = index
+        self.env_ids = env_ids
+        size = len(env_ids)
+        self.histories = np.zeros((2, size, history_length, *frame_shape), dtype=dtype)
+        self.current = 0
+        self.inputs = np.zeros((size, history_length, *frame_shape), dtype=dtype)
+        self.active = list(env_ids)
+        self.active_rows = np.arange(size)
+
+    def act(self, agent: Agent, epsilon: float, actions: np.ndarray) -> None:
+        """One forward pass, then `agent.act`'s choice for each environment in turn."""
+        histories = self.histories[self.current]
+        if len(self.active) == len(self.env_ids):
+            inputs = histories
+        else:
+            inputs = self.inputs[: len(self.active)]
+            np.take(histories, self.active_rows, axis=0, out=inputs, mode="clip")
+        q_values = agent.q_values(inputs)
+        for row, i in enumerate(self.active):
+            actions[i] = _epsilon_greedy(q_values[row], epsilon, agent.rng)
+
+    def record(
+        self, lockstep: _Lockstep, score: list[float], game: list[int], result: EvaluationResult
+    ) -> None:
+        """Take in the step just done: push observations, score ended games."""
+        rows = slice(self.env_ids.start, self.env_ids.stop)
+        previous, self.current = self.current, 1 - self.current
+        histories = self.histories[self.current]
+        np.copyto(histories[:, :-1], self.histories[previous, :, 1:])
+        np.copyto(histories[:, -1], lockstep.observations[rows])
+        result.steps += len(self.active)
+        finished = False
+        for i in self.active:
+            score[i] += float(lockstep.rewards[i])
+            status = lockstep.statuses[i]
+            if status == _RUNNING:
+                continue
+            histories[i - self.env_ids.start, :-1] = 0  # zeros before an episode's start
+            if status == _NEW_EPISODE:
+                continue
+            result.scores[game[i]] = score[i]
+            score[i] = 0.0
+            game[i] += len(game)
+            finished = finished or status == _FINISHED
+        if finished:
+            self.active = [i for i in self.active if lockstep.statuses[i] != _FINISHED]
+            self.active_rows = np.array(self.active, dtype=np.int64) - self.env_ids.start
 
 
 def _cpu_count() -> int:
@@ -386,10 +460,12 @@ def default_workers(config: Config) -> int:
     return cores if cores > 1 and is_atari(config.env) else 0
 
 
-def default_num_envs(workers: int) -> int:
-    """Environments in lockstep: enough to batch the forward pass and keep every worker
-    busy (measured on 2 cores: 16 environments, see README), 8 with no workers."""
-    return 8 * max(1, workers)
+def default_num_envs(episodes: int) -> int:
+    """All the games at once, up to 32: each environment plays one game, so the evaluation
+    lasts as long as its longest game, and the forward passes have the largest batches.
+    On 2 cores (Breakout, 30 games) 30 environments gave 6,600 frames/s, 16 gave 5,900
+    and 8 gave 5,300; the sequential `play` 2,300."""
+    return min(episodes, 32)
 
 
 def _epsilon_greedy(q_values: np.ndarray, epsilon: float, rng: np.random.Generator) -> int:
@@ -398,6 +474,16 @@ def _epsilon_greedy(q_values: np.ndarray, epsilon: float, rng: np.random.Generat
         return int(rng.integers(len(q_values)))
     best = np.flatnonzero(q_values == q_values.max())
     return int(best[0] if len(best) == 1 else rng.choice(best))
+
+
+@contextlib.contextmanager
+def _torch_threads(count: int) -> Iterator[None]:
+    before = torch.get_num_threads()
+    torch.set_num_threads(count)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
 
 
 def play_games(
@@ -414,95 +500,84 @@ def play_games(
     """Exactly `episodes` whole games at `epsilon`, on `num_envs` environments in lockstep.
 
     Environment i, seeded with child i of `seed`, plays games i, i + num_envs, ... each
-    after its own no-op start, and the scores come back in game order: they depend on the
-    seeds and `num_envs`, never on timing. Each lockstep is one forward pass over the
-    stacked histories of the environments still playing, then `agent.act`'s choice for
-    each of them in turn (the same draws from `agent.rng`), then one step of each. With
-    one environment this is `play(..., max_episodes=episodes)`. `workers` processes step
-    the environments (default `default_workers`; 0: the player steps them itself).
+    after its own no-op start, and the scores come back in game order. The environments
+    are acted for in two halves, each with one forward pass over its stacked histories and
+    then `agent.act`'s choice for each environment in turn (the same draws from
+    `agent.rng`): environments 0 to num_envs - 1 act in this order at every lockstep, so
+    the games depend on the seeds and `num_envs`, never on timing or `workers`. With one
+    environment this is `play(..., max_episodes=episodes)`.
+
+    `workers` processes step the environments (default `default_workers`; 0: the player
+    steps them itself). While they step one half, the player acts for the other with one
+    torch thread, leaving the cores to them; the thread count is restored afterwards.
     """
     if episodes <= 0:
         raise ValueError(f"episodes must be positive, got {episodes}")
-    if workers is None:
-        workers = default_workers(config)
     if num_envs is None:
-        num_envs = default_num_envs(workers)
+        num_envs = default_num_envs(episodes)
+    if workers is None:  # one environment cannot overlap with acting: no process to talk to
+        workers = default_workers(config) if num_envs > 1 else 0
     if num_envs <= 0 or workers < 0:
         raise ValueError(f"num_envs ({num_envs}) must be positive and workers ({workers}) >= 0")
     num_envs = min(num_envs, episodes)
     workers = min(workers, num_envs)
     seeds = derive_seeds(seed, num_envs)
     games = [len(range(i, episodes, num_envs)) for i in range(num_envs)]
+    half = (num_envs + 1) // 2
+    batches = [range(0, half), range(half, num_envs)] if num_envs > 1 else [range(1)]
     probe = make_env(config, training=False, seed=seeds[0], max_episode_frames=max_episode_frames)
     frame_shape, frame_dtype = probe.observation_shape, np.dtype(probe.observation_dtype)
     probe.close()
     layout = _Lockstep.layout(num_envs, frame_shape, frame_dtype)
+    acting = [
+        _ActingBatch(k, ids, config.history_length, frame_shape, frame_dtype)
+        for k, ids in enumerate(batches)
+    ]
+    threads = 1 if workers and agent.device.type == "cpu" else torch.get_num_threads()
+    stepper: _EnvWorkers | _EnvGroup
     if workers:
-        stepper: _EnvWorkers | _EnvGroup = _EnvWorkers(
-            config, max_episode_frames, seeds, games, layout, workers
-        )
-        lockstep = stepper.lockstep
+        stepper = _EnvWorkers(config, max_episode_frames, seeds, games, batches, layout, workers)
     else:
         buffers = {name: bytearray(int(np.prod(s)) * d.itemsize) for name, (s, d) in layout.items()}
-        lockstep = _Lockstep.over(buffers, layout)
-        stepper = _EnvGroup(config, max_episode_frames, range(num_envs), seeds, games, lockstep)
-    with stepper:
-        return _lockstep_play(agent, stepper, lockstep, config.history_length, epsilon, episodes)
+        stepper = _EnvGroup(
+            config, max_episode_frames, range(num_envs), seeds, games, batches,
+            _Lockstep.over(buffers, layout),
+        )  # fmt: skip
+    with stepper, _torch_threads(threads):
+        return _lockstep_play(agent, stepper, acting, epsilon, episodes)
 
 
 def _lockstep_play(
     agent: Agent,
     stepper: _EnvWorkers | _EnvGroup,
-    lockstep: _Lockstep,
-    history_length: int,
+    acting: list[_ActingBatch],
     epsilon: float,
     episodes: int,
 ) -> EvaluationResult:
+    """Act for one batch while the other is stepped: act 0, submit 0, act 1, submit 1,
+    wait for 0, act 0, submit 0, wait for 1, ... (the acting order of a plain lockstep)."""
+    lockstep = stepper.lockstep
     num_envs = len(lockstep.statuses)
-    frame_shape = lockstep.observations.shape[1:]
-    dtype = lockstep.observations.dtype
-    # Two sets of histories, written alternately: a push is one copy with no overlap.
-    histories = np.zeros((2, num_envs, history_length, *frame_shape), dtype=dtype)
-    batch = np.zeros((num_envs, history_length, *frame_shape), dtype=dtype)
     result = EvaluationResult(scores=[0.0] * episodes)
     game = list(range(num_envs))  # the game each environment is playing
     score = [0.0] * num_envs
-    active = list(range(num_envs))
-    active_index = np.arange(num_envs)
     start = time.perf_counter()
     stepper.start()
-    current = 0
-    histories[current, :, -1] = lockstep.observations
-    while active:
-        if len(active) == num_envs:
-            inputs = histories[current]
-        else:
-            inputs = batch[: len(active)]
-            np.take(histories[current], active_index, axis=0, out=inputs, mode="clip")
-        q_values = agent.q_values(inputs)
-        for row, i in enumerate(active):
-            lockstep.actions[i] = _epsilon_greedy(q_values[row], epsilon, agent.rng)
-        stepper.step()
-        result.steps += len(active)
-        previous, current = current, 1 - current
-        np.copyto(histories[current, :, :-1], histories[previous, :, 1:])
-        np.copyto(histories[current, :, -1], lockstep.observations)
-        finished = False
-        for i in active:
-            score[i] += float(lockstep.rewards[i])
-            status = lockstep.statuses[i]
-            if status == _RUNNING:
-                continue
-            histories[current, i, :-1] = 0  # a new episode: zeros before its first frame
-            if status == _NEW_EPISODE:
-                continue
-            result.scores[game[i]] = score[i]
-            score[i] = 0.0
-            game[i] += num_envs
-            finished = finished or status == _FINISHED
-        if finished:
-            active = [i for i in active if lockstep.statuses[i] != _FINISHED]
-            active_index = np.array(active, dtype=np.int64)
+    for batch in acting:
+        rows = slice(batch.env_ids.start, batch.env_ids.stop)
+        batch.histories[batch.current, :, -1] = lockstep.observations[rows]
+        batch.act(agent, epsilon, lockstep.actions)
+        stepper.submit(batch.index)
+    playing = list(acting)
+    while playing:
+        for batch in list(playing):
+            stepper.wait()
+            batch.record(lockstep, score, game, result)
+            if batch.active:
+                batch.act(agent, epsilon, lockstep.actions)
+                stepper.submit(batch.index)
+            else:
+                playing.remove(batch)
     result.seconds = time.perf_counter() - start
     result.frames = int(lockstep.frames.sum())
     return result

@@ -1,0 +1,192 @@
+"""The final evaluation's lockstep player: exact game counts, determinism, and the same
+games as a sequential loop."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import pytest
+import torch
+
+from dqnlab import checkpoints
+from dqnlab.agent import Agent, build_agent
+from dqnlab.config import Config, derive_seeds, resolve_config
+from dqnlab.envs import Environment, make_env
+from dqnlab.errors import DqnlabError
+from dqnlab.evaluate import EvaluationResult, final_evaluation, play, play_games
+from dqnlab.replay import FrameHistory
+
+EPSILON = 0.05
+AGENT_SEED = 7
+CARTPOLE_CAP = 500
+PONG_CAP = 2_000  # an untrained network loses a game of Pong in more frames: games end here
+
+
+@pytest.fixture(scope="module")
+def cartpole() -> Config:
+    return resolve_config("classic", env="CartPole-v1")
+
+
+@pytest.fixture(scope="module")
+def pong() -> Config:
+    return resolve_config("nature", env="pong")
+
+
+def untrained_agent(config: Config) -> Agent:
+    """The same small untrained network and acting stream at every call."""
+    torch.manual_seed(0)
+    env = make_env(config, training=False, seed=0)
+    agent = build_agent(config, env, torch.device("cpu"), AGENT_SEED)
+    env.close()
+    return agent
+
+
+def games(config: Config, episodes: int, seed: int, cap: int, **options) -> EvaluationResult:
+    agent = untrained_agent(config)
+    return play_games(
+        agent, config, episodes, seed, epsilon=EPSILON, max_episode_frames=cap, **options
+    )
+
+
+def reference_games(
+    agent: Agent, env: Environment, history_length: int, count: int
+) -> tuple[list[float], int]:
+    """`count` whole games played one step at a time with `agent.act`: (scores, steps)."""
+    history = FrameHistory(history_length, env.observation_shape, env.observation_dtype)
+    history.reset(env.reset(new_game=True))
+    scores: list[float] = []
+    score = 0.0
+    steps = 0
+    while True:
+        observation, reward, _, _ = env.step(agent.act(history.frames, EPSILON))
+        steps += 1
+        score += reward
+        if env.game_ended:  # evaluation episodes end only with their game
+            scores.append(score)
+            score = 0.0
+            if len(scores) == count:
+                return scores, steps
+            history.reset(env.reset())
+        else:
+            history.push(observation)
+
+
+def test_cartpole_plays_exactly_the_requested_games_and_scores_add_up(cartpole) -> None:
+    result = games(cartpole, 7, seed=3, cap=CARTPOLE_CAP, num_envs=3)
+    assert len(result.scores) == 7
+    assert all(1 <= score <= CARTPOLE_CAP for score in result.scores)
+    # CartPole pays 1 per step and a frame is a step: scores, steps and frames agree.
+    assert sum(result.scores) == result.steps == result.frames
+    assert result.seconds > 0
+
+
+def test_one_environment_plays_the_games_of_a_sequential_loop(cartpole) -> None:
+    result = games(cartpole, 4, seed=11, cap=CARTPOLE_CAP, num_envs=1, workers=0)
+    env_seed = derive_seeds(11, 1)[0]
+    env = make_env(cartpole, training=False, seed=env_seed, max_episode_frames=CARTPOLE_CAP)
+    scores, steps = reference_games(untrained_agent(cartpole), env, cartpole.history_length, 4)
+    assert result.scores == scores
+    assert result.steps == steps == result.frames
+    env = make_env(cartpole, training=False, seed=env_seed, max_episode_frames=CARTPOLE_CAP)
+    sequential = play(untrained_agent(cartpole), env, cartpole.history_length, EPSILON, None, 4)
+    assert sequential.scores == scores
+
+
+def test_environment_i_plays_games_i_i_plus_n_and_so_on(cartpole) -> None:
+    """The lockstep acts for env 0, 1, ..., N-1 in turn: one agent stepping the N
+    environments round-robin, each one's games in the slots i, i + N, ..."""
+    num_envs, count = 3, 7
+    result = games(cartpole, count, seed=5, cap=CARTPOLE_CAP, num_envs=num_envs, workers=0)
+    agent = untrained_agent(cartpole)
+    envs = [
+        make_env(cartpole, training=False, seed=seed, max_episode_frames=CARTPOLE_CAP)
+        for seed in derive_seeds(5, num_envs)
+    ]
+    shape, dtype = envs[0].observation_shape, envs[0].observation_dtype
+    histories = [FrameHistory(cartpole.history_length, shape, dtype) for _ in envs]
+    for env, history in zip(envs, histories, strict=True):
+        history.reset(env.reset(new_game=True))
+    games_left = [len(range(i, count, num_envs)) for i in range(num_envs)]
+    game = list(range(num_envs))
+    score = [0.0] * num_envs
+    scores = [0.0] * count
+    while any(games_left):
+        playing = [i for i in range(num_envs) if games_left[i]]
+        actions = {i: agent.act(histories[i].frames, EPSILON) for i in playing}
+        for i in playing:
+            observation, reward, _, _ = envs[i].step(actions[i])
+            score[i] += reward
+            if envs[i].game_ended:
+                scores[game[i]], score[i], game[i] = score[i], 0.0, game[i] + num_envs
+                games_left[i] -= 1
+                if games_left[i]:
+                    histories[i].reset(envs[i].reset())
+            else:
+                histories[i].push(observation)
+    assert result.scores == scores
+
+
+def test_worker_processes_step_the_same_games_as_the_player_itself(cartpole) -> None:
+    in_process = games(cartpole, 5, seed=9, cap=CARTPOLE_CAP, num_envs=3, workers=0)
+    two_workers = games(cartpole, 5, seed=9, cap=CARTPOLE_CAP, num_envs=3, workers=2)
+    assert two_workers.scores == in_process.scores
+    assert (two_workers.steps, two_workers.frames) == (in_process.steps, in_process.frames)
+
+
+def test_atari_games_end_at_the_cap_and_repeat_exactly(pong) -> None:
+    first = games(pong, 3, seed=21, cap=PONG_CAP, num_envs=2)  # default: worker processes
+    second = games(pong, 3, seed=21, cap=PONG_CAP, num_envs=2)
+    assert len(first.scores) == 3
+    assert first.scores == second.scores
+    assert (first.steps, first.frames) == (second.steps, second.frames)
+    # Every game was cut at the cap, no-op frames included: 2,000 raw frames each.
+    assert first.frames == 3 * PONG_CAP
+    assert first.steps < first.frames / pong.action_repeat_frames
+    assert all(-21 <= score <= 21 for score in first.scores)
+
+
+def test_atari_one_environment_plays_the_games_of_a_sequential_loop(pong) -> None:
+    result = games(pong, 2, seed=4, cap=PONG_CAP, num_envs=1, workers=1)
+    env = make_env(pong, training=False, seed=derive_seeds(4, 1)[0], max_episode_frames=PONG_CAP)
+    scores, steps = reference_games(untrained_agent(pong), env, pong.history_length, 2)
+    assert result.scores == scores
+    assert result.steps == steps
+    assert result.frames == env.frames == 2 * PONG_CAP
+
+
+def test_more_environments_than_games_play_each_game_once(cartpole) -> None:
+    result = games(cartpole, 2, seed=1, cap=CARTPOLE_CAP, num_envs=8, workers=0)
+    assert len(result.scores) == 2
+    assert sum(result.scores) == result.steps
+
+
+@pytest.mark.parametrize("options", [{"num_envs": 0}, {"workers": -1}])
+def test_bad_settings_are_refused(cartpole, options) -> None:
+    with pytest.raises(ValueError):
+        games(cartpole, 2, seed=1, cap=CARTPOLE_CAP, **options)
+    with pytest.raises(ValueError):
+        games(cartpole, 0, seed=1, cap=CARTPOLE_CAP)
+
+
+def test_a_failure_in_a_worker_process_is_reported(pong) -> None:
+    """A network with Pong's 18 full-set actions acting on the 6 minimal ones: the worker's
+    env.step fails, and the player says which worker and why."""
+    agent = untrained_agent(dataclasses.replace(pong, full_action_space=True))
+    with pytest.raises(DqnlabError, match="(?s)evaluation worker .* failed.*IndexError"):
+        play_games(agent, pong, 2, 1, epsilon=1.0, max_episode_frames=PONG_CAP, workers=2)
+
+
+def test_final_evaluation_plays_a_checkpoint_on_several_environments(tmp_path) -> None:
+    config = resolve_config("classic", env="CartPole-v1", final_eval_max_episode_frames=200)
+    agent = untrained_agent(config)
+    path = tmp_path / "net.pt"
+    checkpoints.save(path, {"config": config.to_dict(), "network": agent.online.state_dict()})
+    result, saved, used = final_evaluation(
+        tmp_path, str(path), 5, seed=2, device=torch.device("cpu"), num_envs=2
+    )
+    assert (saved, used) == (config, path)
+    assert len(result.scores) == 5
+    assert all(1 <= score <= 200 for score in result.scores)
+    assert sum(result.scores) == result.steps == result.frames
+    again, _, _ = final_evaluation(tmp_path, str(path), 5, 2, torch.device("cpu"), num_envs=2)
+    assert again.scores == result.scores
