@@ -238,7 +238,9 @@ _START = b"start"
 _CLOSE = b"close"
 
 
-def _worker(connection: Connection, group_arguments: tuple, buffers: dict, layout: dict) -> None:
+def _worker(
+    connection: Connection, group_arguments: dict[str, Any], buffers: dict, layout: dict
+) -> None:
     """A worker process: builds its environments, then runs the player's commands in order
     (start, a batch index to step, close). Each command is answered with an empty message,
     or with the traceback of a failure."""
@@ -246,7 +248,7 @@ def _worker(connection: Connection, group_arguments: tuple, buffers: dict, layou
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the player's to handle
     try:
-        group = _EnvGroup(*group_arguments, _Lockstep.over(buffers, layout))
+        group = _EnvGroup(**group_arguments, lockstep=_Lockstep.over(buffers, layout))
     except Exception:  # noqa: BLE001 - sent to the player, which raises it
         connection.send_bytes(traceback.format_exc().encode())
         return
@@ -308,13 +310,17 @@ class _EnvWorkers:
         self.lockstep = _Lockstep.over(self.buffers, layout)
         self.connections: list[Connection] = []
         self.processes: list[multiprocessing.process.BaseProcess] = []
-        self.pending = 0  # commands submitted and not yet acknowledged, per worker
         num_envs = len(seeds)
         try:
             for w in range(workers):
-                env_ids = list(range(w, num_envs, workers))
-                group_arguments = (config, max_episode_frames, env_ids, list(seeds),
-                                   list(games), list(batches))  # fmt: skip
+                group_arguments = {
+                    "config": config,
+                    "max_episode_frames": max_episode_frames,
+                    "env_ids": list(range(w, num_envs, workers)),
+                    "seeds": list(seeds),
+                    "games": list(games),
+                    "batches": list(batches),
+                }
                 player_end, worker_end = context.Pipe()
                 process = context.Process(  # type: ignore[attr-defined]
                     target=_worker,
@@ -326,7 +332,6 @@ class _EnvWorkers:
                 worker_end.close()
                 self.connections.append(player_end)
                 self.processes.append(process)
-            self.pending = 1
             self.wait()  # every worker has built its environments
         except BaseException:
             self.close()
@@ -342,7 +347,6 @@ class _EnvWorkers:
     def _send(self, command: bytes) -> None:
         for connection in self.connections:
             connection.send_bytes(command)
-        self.pending += 1
 
     def wait(self) -> None:
         """Wait for the oldest submitted command to be done by every worker."""
@@ -358,7 +362,6 @@ class _EnvWorkers:
                 ) from None
             if reply:
                 raise DqnlabError(f"evaluation worker {w} failed:\n{reply.decode()}")
-        self.pending -= 1
 
     def close(self) -> None:
         for connection in self.connections:
@@ -463,8 +466,8 @@ def default_workers(config: Config) -> int:
 def default_num_envs(episodes: int) -> int:
     """All the games at once, up to 32: each environment plays one game, so the evaluation
     lasts as long as its longest game, and the forward passes have the largest batches.
-    On 2 cores (Breakout, 30 games) 30 environments gave 6,600 frames/s, 16 gave 5,900
-    and 8 gave 5,300; the sequential `play` 2,300."""
+    Measured on 2 shared cores (Breakout, untrained network, 30 games): 30 environments
+    6,600 frames/s, 16 5,800-6,000, 8 4,900-5,700, the sequential `play` 2,200-2,500."""
     return min(episodes, 32)
 
 
