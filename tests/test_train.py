@@ -13,7 +13,7 @@ from dqnlab.agent import Agent
 from dqnlab.checkpoints import CheckpointStore
 from dqnlab.config import resolve_config
 from dqnlab.evaluate import load_run_config
-from dqnlab.train import prepare_run_dir, train
+from dqnlab.train import eval_network_path, keep_evaluated_network, prepare_run_dir, train
 
 
 def test_update_and_target_copy_timing(tmp_path: Path, monkeypatch) -> None:
@@ -73,4 +73,27 @@ def test_run_directory_contents(tmp_path: Path) -> None:
     # The whole training state at every evaluation, the last two kept.
     assert CheckpointStore(run).steps() == [800, 1200]
     assert any((run / "tensorboard").iterdir())
+    # The network of every evaluation is kept (eval_networks_kept = "all"), and worst.pt.
+    for row in evaluations:
+        kept = checkpoints.load(eval_network_path(run, int(row["step"])))
+        assert kept["step"] == int(row["step"]) and kept["eval_mean"] == float(row["mean"])
+    means = [(float(row["mean"]), int(row["step"])) for row in evaluations]
+    worst_mean = min(mean for mean, _ in means)
+    worst_step = max(step for mean, step in means if mean == worst_mean)  # ties: the later
+    worst = checkpoints.load(run / "checkpoints" / "worst.pt")
+    assert (worst["eval_mean"], worst["step"]) == (worst_mean, worst_step)
     assert not math.isnan(result.best_eval_mean)
+
+
+def test_worst_network_is_chosen_after_the_first_quarter(tmp_path: Path) -> None:
+    config = resolve_config("classic", env="CartPole-v1", total_steps=1000,
+                            eval_networks_kept="best_and_worst")  # fmt: skip
+    worst = tmp_path / "checkpoints" / "worst.pt"
+    history: list[tuple[int, float]] = []
+    for step, mean in [(100, 5.0), (250, 50.0), (500, 80.0), (750, 20.0), (1000, 20.0)]:
+        keep_evaluated_network(tmp_path, config, history, step, mean, {"step": step})
+        history.append((step, mean))
+        if step == 100:  # before the quarter: the early, untrained network never counts
+            assert not worst.exists()
+    assert checkpoints.load(worst)["step"] == 1000  # 20.0 at 750 and 1000: the later
+    assert not (tmp_path / "checkpoints" / "evals").exists()  # only best and worst kept

@@ -136,9 +136,12 @@ def evaluate(
     seed: Annotated[int, typer.Option(help="Seed of the evaluation's random streams")] = 12345,
     device: Annotated[str, typer.Option(help="auto, cpu or cuda")] = "auto",
 ) -> None:
-    """The Nature final protocol: games of at most 18,000 frames, epsilon 0.05, no-op starts."""
+    """The Nature final protocol: games of at most 18,000 frames, epsilon 0.05, no-op starts.
+
+    Evaluating the run's best network (the default) also saves the result as
+    RUN_DIR/final_evaluation.json, which `dqnlab report` reads."""
     from dqnlab.agent import resolve_device
-    from dqnlab.evaluate import final_evaluation
+    from dqnlab.evaluate import final_evaluation, final_evaluation_record, save_final_evaluation
 
     result, config, checkpoint_path = final_evaluation(
         run_dir, checkpoint, episodes, seed, resolve_device(device)
@@ -147,24 +150,12 @@ def evaluate(
         f"{config.env}: {result.mean:.2f} ± {result.std:.2f} over {len(result.scores)} games "
         f"({checkpoint_path}, {result.frames} frames at {result.frames_per_second:.0f} frames/s)"
     )
+    record = final_evaluation_record(result, config, checkpoint_path, seed)
+    if checkpoint == "best":
+        save_final_evaluation(run_dir, record)
     if json_path:
         json_path.parent.mkdir(parents=True, exist_ok=True)
-        json_path.write_text(
-            json.dumps(
-                {
-                    "env": config.env,
-                    "checkpoint": str(checkpoint_path),
-                    "episodes": len(result.scores),
-                    "scores": result.scores,
-                    "mean": result.mean,
-                    "std": result.std,
-                    "frames": result.frames,
-                    "frames_per_second": result.frames_per_second,
-                },
-                indent=2,
-            )
-            + "\n"
-        )
+        json_path.write_text(json.dumps(record, indent=2) + "\n")
 
 
 @app.command()

@@ -91,6 +91,11 @@ class Config:
     final_eval_max_episode_frames: int = _setting(
         18_000, "Episode cap of the final evaluation in raw frames (5 minutes)"
     )
+    eval_networks_kept: str = _setting(
+        "all",
+        "Networks kept for inspection: all (one per periodic evaluation, ~6.7 MB each for "
+        "Atari) or best_and_worst (best.pt, and worst.pt: the worst after the first quarter)",
+    )
     # Budget.
     total_steps: int = _setting(50_000_000, "Training budget in agent steps")
     # Speed (no change of results beyond float rounding).
@@ -125,6 +130,7 @@ _CHOICES = {
     "loss_reduction": ("sum", "mean"),
     "optimizer": ("deepmind_rmsprop", "rmsprop", "adam"),
     "on_checkpoint_error": ("stop", "continue"),
+    "eval_networks_kept": ("all", "best_and_worst"),
 }
 
 
@@ -170,7 +176,7 @@ def _validate(config: Config) -> None:
 # Settings that do not shape the training state: a run may resume with them changed.
 RESUMABLE_CHANGES = (
     "total_steps", "compile_update", "checkpoint_period_minutes", "checkpoint_period_steps",
-    "checkpoints_kept", "on_checkpoint_error",
+    "checkpoints_kept", "on_checkpoint_error", "eval_networks_kept",
 )  # fmt: skip
 
 

@@ -18,6 +18,7 @@ of a step.
 from __future__ import annotations
 
 import contextlib
+import json
 import multiprocessing
 import os
 import sys
@@ -595,6 +596,51 @@ def load_run_config(run_dir: Path) -> Config:
             return config_from_dict(tomllib.load(handle))
     except tomllib.TOMLDecodeError as error:
         raise DqnlabError(f"{path} is not valid TOML: {error}") from None
+
+
+FINAL_EVALUATION_FILE = "final_evaluation.json"
+
+
+def final_evaluation_record(
+    result: EvaluationResult, config: Config, checkpoint_path: Path, seed: int
+) -> dict[str, Any]:
+    """The result of a final evaluation as `dqnlab evaluate --json` and
+    `final_evaluation.json` hold it (std over games with ddof 0, as numpy's default)."""
+    payload = checkpoints.load(checkpoint_path)
+    return {
+        "env": config.env,
+        "checkpoint": str(checkpoint_path),
+        "checkpoint_step": payload.get("step"),
+        "seed": seed,
+        "episodes": len(result.scores),
+        "epsilon": config.eval_epsilon,
+        "max_episode_frames": config.final_eval_max_episode_frames,
+        "scores": result.scores,
+        "mean": result.mean,
+        "std": result.std,
+        "frames": result.frames,
+        "frames_per_second": result.frames_per_second,
+    }
+
+
+def save_final_evaluation(run_dir: Path, record: dict[str, Any]) -> Path:
+    """Write `record` as the run's final evaluation (read by `dqnlab report`)."""
+    path = run_dir / FINAL_EVALUATION_FILE
+    temporary = path.with_name(path.name + ".tmp")
+    temporary.write_text(json.dumps(record, indent=2) + "\n")
+    os.replace(temporary, path)
+    return path
+
+
+def load_final_evaluation(run_dir: Path) -> dict[str, Any] | None:
+    """The run's saved final evaluation, or None if it has none yet."""
+    path = run_dir / FINAL_EVALUATION_FILE
+    if not path.is_file():
+        return None
+    try:
+        return json.loads(path.read_text())
+    except json.JSONDecodeError as error:
+        raise DqnlabError(f"{path} is not valid JSON: {error}") from None
 
 
 def final_evaluation(

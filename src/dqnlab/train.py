@@ -435,6 +435,9 @@ def train(
                         {**metadata, "step": step, "eval_mean": result_mean,
                          "network": agent.online.state_dict()},
                     )  # fmt: skip
+                keep_evaluated_network(run_dir, config, run.evaluations, step, result_mean,
+                                       {**metadata, "step": step, "eval_mean": result_mean,
+                                        "network": agent.online.state_dict()})  # fmt: skip
                 run.evaluations.append((step, result_mean))
                 logger.evaluation(
                     {
@@ -512,6 +515,33 @@ def train(
         run.evaluations,
         interrupted,
     )
+
+
+EVAL_NETWORKS_DIR = "evals"
+
+
+def eval_network_path(run_dir: Path, step: int) -> Path:
+    """Where `eval_networks_kept = "all"` keeps the network evaluated at `step`."""
+    return run_dir / "checkpoints" / EVAL_NETWORKS_DIR / f"step-{step:09d}.pt"
+
+
+def keep_evaluated_network(
+    run_dir: Path,
+    config: Config,
+    earlier: list[tuple[int, float]],
+    step: int,
+    mean: float,
+    payload: dict[str, Any],
+) -> None:
+    """Keep the network just evaluated for `dqnlab inspect`: a file per evaluation
+    (`eval_networks_kept = "all"`), and `worst.pt`, the lowest mean among evaluations in
+    the last three quarters of the budget (the seed paper compares the best network with
+    "a network that performed poorly very late into training"; ties go to the later)."""
+    if config.eval_networks_kept == "all":
+        checkpoints.save(eval_network_path(run_dir, step), payload)
+    quarter = config.total_steps / 4
+    if step >= quarter and all(mean <= m for s, m in earlier if s >= quarter):
+        checkpoints.save(run_dir / "checkpoints" / "worst.pt", payload)
 
 
 def _periodic_mean(result: EvaluationResult) -> float:
