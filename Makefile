@@ -21,9 +21,11 @@ install-test: $(BIN)/python
 train: install
 	$(BIN)/dqnlab train --env $(GAME) --preset nature $(ARGS)
 
-# The test suite CI runs: lint, then every test not marked slow.
+# The test suite CI runs: lint, format and type checks, then every test not marked slow.
 test: install-test
 	$(BIN)/ruff check src tests
+	$(BIN)/ruff format --check src tests
+	$(BIN)/mypy src
 	$(BIN)/python -m pytest -q
 
 # Learning tests (minutes): the classic preset solves CartPole-v1 for 3 seeds.

@@ -6,6 +6,8 @@ import pytest
 import torch
 
 from dqnlab.bench import run_benchmark
+from dqnlab.config import resolve_config
+from dqnlab.evaluate import default_workers
 
 
 def test_benchmark_figures_on_a_small_replay() -> None:
@@ -17,9 +19,18 @@ def test_benchmark_figures_on_a_small_replay() -> None:
     # growth measured can be smaller than the arrays in a process that freed memory before.)
     assert figures["peak_resident_bytes"] >= 3000 * (84 * 84 + 10)
     assert figures["replay_resident_bytes"] <= 1.05 * 3000 * (84 * 84 + 10) + 2**20
-    for name in ("sample_us", "update_ms", "train_frames_per_second", "eval_frames_per_second"):
+    for name in (
+        "sample_us",
+        "update_ms",
+        "train_frames_per_second",
+        "eval_frames_per_second",
+        "eval_frames_per_second_single",
+    ):
         assert figures[name] > 0, name
     assert figures["device"] == "cpu" and figures["threads"] >= 1
+    # The final evaluation's games, all at once (30 in the nature preset), on every core.
+    assert figures["eval_envs"] == 30
+    assert figures["eval_workers"] == default_workers(resolve_config("nature", env="pong"))
 
 
 def test_benchmark_with_the_peer_alternates_and_reports_the_ratio() -> None:

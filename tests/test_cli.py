@@ -2,12 +2,15 @@
 
 from __future__ import annotations
 
+import csv
 import json
 import subprocess
 import sys
 from pathlib import Path
 
 import pytest
+
+from dqnlab.video import video_file_name
 
 
 def dqnlab(*args: str, cwd: Path | None = None) -> subprocess.CompletedProcess[str]:
@@ -34,8 +37,10 @@ def test_train_and_evaluate_cartpole(tmp_path: Path) -> None:
     last = str(run / "checkpoints" / "last.pt")
     elsewhere = dqnlab("evaluate", str(tmp_path), "--checkpoint", last, "--episodes", "1")
     assert elsewhere.returncode == 0, elsewhere.stderr
-    assert set(result) == {"env", "checkpoint", "episodes", "scores", "mean", "std", "frames",
-                           "frames_per_second"}  # fmt: skip
+    assert set(result) == {"env", "checkpoint", "checkpoint_step", "episodes", "scores", "mean",
+                           "std", "frames", "frames_per_second", "seed", "epsilon",
+                           "max_episode_frames"}  # fmt: skip
+    assert result["epsilon"] == 0.0 and result["seed"] == 12345  # classic preset: greedy
     assert result["env"] == "CartPole-v1" and result["episodes"] == len(result["scores"]) == 3
     assert result["frames"] == sum(result["scores"])  # CartPole: +1 per step, frame = step
     assert f"{result['mean']:.2f} ± {result['std']:.2f}" in evaluated.stdout
@@ -60,6 +65,57 @@ def test_train_and_evaluate_an_atari_game(tmp_path: Path) -> None:
     result = json.loads(out.read_text())
     # A full Pong game of a barely trained agent: 21 points to the opponent, many frames.
     assert result["scores"][0] < 0 and result["frames"] > 3000
+    # Filmed, the same game: the same score, in the file's name.
+    videos = tmp_path / "videos"
+    filmed = dqnlab("evaluate", str(run), "--checkpoint", "last", "--episodes", "1",
+                    "--video", str(videos), "--json", str(out))  # fmt: skip
+    assert filmed.returncode == 0, filmed.stderr
+    assert json.loads(out.read_text())["scores"] == result["scores"]
+    name = video_file_name("pong", 1, 1, result["scores"][0], "mp4")
+    assert [path.name for path in videos.iterdir()] == [name]
+    assert (videos / name).stat().st_size > 10_000
+
+
+def test_report_and_inspect_two_runs_that_differ_in_one_setting(tmp_path: Path) -> None:
+    runs = []
+    for gamma in ("0.9", "0.99"):
+        run = tmp_path / "runs" / f"cartpole-{gamma}"
+        trained = dqnlab(
+            "train", "--env", "CartPole-v1", "--steps", "900", "--run-dir", str(run),
+            "--set", f"discount={gamma}", "--set", "replay_start_steps=300",
+            "--set", "eval_period_steps=300", "--set", "eval_steps=300", "--no-progress",
+        )  # fmt: skip
+        assert trained.returncode == 0, trained.stderr
+        runs.append(run)
+    out = tmp_path / "report"
+    reported = dqnlab("report", *map(str, runs), "--out", str(out), "--episodes", "2",
+                      "--frames", "3")  # fmt: skip
+    assert reported.returncode == 0, reported.stderr
+    rows = list(csv.DictReader((out / "results.csv").open()))
+    assert sorted(row["configuration"] for row in rows) == ["discount=0.9", "discount=0.99"]
+    for run, row in zip(runs, sorted(rows, key=lambda row: row["configuration"]), strict=True):
+        final = json.loads((run / "final_evaluation.json").read_text())  # played by report
+        assert final["episodes"] == 2 and float(row["score_mean"]) == pytest.approx(final["mean"])
+        assert f"{final['mean']:.1f} ± {final['std']:.1f}" in reported.stdout
+        q_values = list(csv.DictReader((out / "q-values" / run.name / "q_values.csv").open()))
+        assert {r["network"] for r in q_values} == {"best", "worst"}
+        assert len(q_values) == 2 * 3 * 2  # networks x frames x CartPole's actions
+    assert (out / "curves-CartPole-v1.png").stat().st_size > 0
+    assert "![CartPole-v1](curves-CartPole-v1.png)" in (out / "results.md").read_text()
+
+    inspected = dqnlab("inspect", str(runs[0]), "--frames", "2", "--checkpoints", "best")
+    assert inspected.returncode == 0, inspected.stderr
+    assert len(list((runs[0] / "inspect").glob("frame-*.png"))) == 2
+    missing = dqnlab("inspect", str(runs[0]), "--checkpoints", "123")
+    assert missing.returncode == 2 and "no network evaluated at step 123" in missing.stderr
+
+
+@pytest.mark.parametrize(
+    "command", ["train", "resume", "evaluate", "bench", "ablate", "report", "inspect", "games"]
+)
+def test_every_command_has_help(command: str) -> None:
+    result = dqnlab(command, "--help")
+    assert result.returncode == 0 and "Usage:" in result.stdout
 
 
 def test_refuses_to_overwrite_a_run(tmp_path: Path) -> None:

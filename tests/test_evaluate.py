@@ -1,9 +1,12 @@
-"""The final evaluation's lockstep player: exact game counts, determinism, and the same
-games as a sequential loop."""
+"""The final evaluation's lockstep player: exact game counts, determinism, the same
+games as a sequential loop, a step budget, and worker processes without torch."""
 
 from __future__ import annotations
 
 import dataclasses
+import subprocess
+import sys
+import textwrap
 
 import pytest
 import torch
@@ -92,38 +95,89 @@ def test_one_environment_plays_the_games_of_a_sequential_loop(cartpole) -> None:
     assert sequential.scores == scores
 
 
-def test_environment_i_plays_games_i_i_plus_n_and_so_on(cartpole) -> None:
-    """The lockstep acts for env 0, 1, ..., N-1 in turn: one agent stepping the N
-    environments round-robin, each one's games in the slots i, i + N, ..."""
-    num_envs, count = 3, 7
-    result = games(cartpole, count, seed=5, cap=CARTPOLE_CAP, num_envs=num_envs, workers=0)
-    agent = untrained_agent(cartpole)
+def round_robin_games(
+    config: Config, count: int, seed: int, cap: int, num_envs: int, max_steps: int | None = None
+) -> tuple[dict[int, float], int, int]:
+    """One agent stepping `num_envs` environments round-robin, each one's games in the slots
+    i, i + N, ..., in two halves (envs 0 to ceil(N/2) - 1, then the others) until a half
+    would overrun `max_steps`: (the finished games' scores by slot, steps, frames)."""
+    agent = untrained_agent(config)
     envs = [
-        make_env(cartpole, training=False, seed=seed, max_episode_frames=CARTPOLE_CAP)
-        for seed in derive_seeds(5, num_envs)
+        make_env(config, training=False, seed=env_seed, max_episode_frames=cap)
+        for env_seed in derive_seeds(seed, num_envs)
     ]
     shape, dtype = envs[0].observation_shape, envs[0].observation_dtype
-    histories = [FrameHistory(cartpole.history_length, shape, dtype) for _ in envs]
+    histories = [FrameHistory(config.history_length, shape, dtype) for _ in envs]
     for env, history in zip(envs, histories, strict=True):
         history.reset(env.reset(new_game=True))
+    half = (num_envs + 1) // 2
+    halves = [range(half), range(half, num_envs)]
     games_left = [len(range(i, count, num_envs)) for i in range(num_envs)]
     game = list(range(num_envs))
     score = [0.0] * num_envs
-    scores = [0.0] * count
+    scores: dict[int, float] = {}
+    steps = 0
     while any(games_left):
-        playing = [i for i in range(num_envs) if games_left[i]]
-        actions = {i: agent.act(histories[i].frames, EPSILON) for i in playing}
-        for i in playing:
-            observation, reward, _, _ = envs[i].step(actions[i])
-            score[i] += reward
-            if envs[i].game_ended:
-                scores[game[i]], score[i], game[i] = score[i], 0.0, game[i] + num_envs
-                games_left[i] -= 1
-                if games_left[i]:
-                    histories[i].reset(envs[i].reset())
-            else:
-                histories[i].push(observation)
-    assert result.scores == scores
+        for envs_in_half in halves:
+            playing = [i for i in envs_in_half if games_left[i]]
+            if max_steps is not None and steps + len(playing) > max_steps:
+                return scores, steps, sum(env.frames for env in envs)
+            actions = {i: agent.act(histories[i].frames, EPSILON) for i in playing}
+            for i in playing:
+                observation, reward, _, _ = envs[i].step(actions[i])
+                steps += 1
+                score[i] += reward
+                if envs[i].game_ended:
+                    scores[game[i]], score[i], game[i] = score[i], 0.0, game[i] + num_envs
+                    games_left[i] -= 1
+                    if games_left[i]:
+                        histories[i].reset(envs[i].reset())
+                else:
+                    histories[i].push(observation)
+    return scores, steps, sum(env.frames for env in envs)
+
+
+def test_environment_i_plays_games_i_i_plus_n_and_so_on(cartpole) -> None:
+    """The lockstep acts for env 0, 1, ..., N-1 in turn: one agent stepping the N
+    environments round-robin, each one's games in the slots i, i + N, ..."""
+    result = games(cartpole, 7, seed=5, cap=CARTPOLE_CAP, num_envs=3, workers=0)
+    scores, steps, frames = round_robin_games(cartpole, 7, seed=5, cap=CARTPOLE_CAP, num_envs=3)
+    assert result.scores == [scores[slot] for slot in range(7)]
+    assert (result.steps, result.frames) == (steps, frames)
+    assert (result.num_envs, result.workers) == (3, 0)
+
+
+@pytest.mark.parametrize("workers", [0, 2])
+def test_a_step_budget_ends_the_play_and_scores_only_finished_games(cartpole, workers) -> None:
+    """Games cut by `max_steps` are not scored but their steps and frames count; the games
+    finished are those of the unbounded play, scored alike."""
+    budget = 50  # untrained CartPole games last about 10 to 40 steps
+    result = games(
+        cartpole, 7, seed=5, cap=CARTPOLE_CAP, num_envs=3, workers=workers, max_steps=budget
+    )
+    scores, steps, frames = round_robin_games(
+        cartpole, 7, seed=5, cap=CARTPOLE_CAP, num_envs=3, max_steps=budget
+    )
+    assert 0 < len(scores) < 7  # some games finished, some were cut: the case under test
+    assert result.scores == [scores[slot] for slot in sorted(scores)]
+    assert (result.steps, result.frames) == (steps, frames)
+    assert budget - 2 < result.steps <= budget  # the halves have 2 and 1 environments
+    assert sum(result.scores) < result.steps  # steps of the games cut short are counted
+    unbounded = games(cartpole, 7, seed=5, cap=CARTPOLE_CAP, num_envs=3, workers=workers)
+    assert [unbounded.scores[slot] for slot in sorted(scores)] == result.scores
+
+
+def test_a_step_budget_counts_every_atari_frame_emulated(pong) -> None:
+    """Frames are those the emulators ran, no-op starts and the games cut short included."""
+    cap, budget = 400, 390  # games of about 95 steps: each env finishes one, starts one
+    result = games(pong, 6, seed=8, cap=cap, num_envs=3, workers=2, max_steps=budget)
+    scores, steps, frames = round_robin_games(
+        pong, 6, seed=8, cap=cap, num_envs=3, max_steps=budget
+    )
+    assert len(scores) == 3
+    assert result.scores == [scores[slot] for slot in sorted(scores)]
+    assert (result.steps, result.frames) == (steps, frames)
+    assert result.frames > 3 * cap  # more than the finished games' frames
 
 
 def test_worker_processes_step_the_same_games_as_the_player_itself(cartpole) -> None:
@@ -160,7 +214,7 @@ def test_more_environments_than_games_play_each_game_once(cartpole) -> None:
     assert sum(result.scores) == result.steps
 
 
-@pytest.mark.parametrize("options", [{"num_envs": 0}, {"workers": -1}])
+@pytest.mark.parametrize("options", [{"num_envs": 0}, {"workers": -1}, {"max_steps": 0}])
 def test_bad_settings_are_refused(cartpole, options) -> None:
     with pytest.raises(ValueError):
         games(cartpole, 2, seed=1, cap=CARTPOLE_CAP, **options)
@@ -190,3 +244,52 @@ def test_final_evaluation_plays_a_checkpoint_on_several_environments(tmp_path) -
     assert sum(result.scores) == result.steps == result.frames
     again, _, _ = final_evaluation(tmp_path, str(path), 5, 2, torch.device("cpu"), num_envs=2)
     assert again.scores == result.scores
+
+
+# A Gymnasium environment, built by `make_env` from `torch_probe:TorchProbe`, that pays 1
+# per step if torch is imported in the process stepping it: a game is 3 steps.
+TORCH_PROBE = """
+import sys
+
+import gymnasium as gym
+import numpy as np
+
+
+class TorchProbe(gym.Env):
+    observation_space = gym.spaces.Box(0.0, 1.0, (2,), np.float32)
+    action_space = gym.spaces.Discrete(2)
+
+    def reset(self, *, seed=None, options=None):
+        super().reset(seed=seed)
+        self.steps = 0
+        return np.zeros(2, np.float32), {}
+
+    def step(self, action):
+        self.steps += 1
+        reward = float("torch" in sys.modules)
+        return np.zeros(2, np.float32), reward, self.steps == 3, False, {}
+"""
+
+
+def test_worker_processes_do_not_import_torch(tmp_path, monkeypatch) -> None:
+    """The player has torch (the probe scores 3 a game there); the workers must not."""
+    (tmp_path / "torch_probe.py").write_text(TORCH_PROBE)
+    monkeypatch.syspath_prepend(str(tmp_path))  # workers get the player's sys.path
+    config = resolve_config("classic", env="torch_probe:TorchProbe")
+    in_player = games(config, 2, seed=0, cap=0, num_envs=2, workers=0)
+    assert in_player.scores == [3.0, 3.0]
+    in_workers = games(config, 2, seed=0, cap=0, num_envs=2, workers=2)
+    assert in_workers.scores == [0.0, 0.0]
+
+
+def test_the_worker_module_does_not_import_torch() -> None:
+    """What the forkserver preloads: its imports alone, in a fresh interpreter."""
+    code = textwrap.dedent("""
+        import sys
+        import dqnlab.envs.pool
+        print(sorted(name for name in sys.modules if name.split(".")[0] == "torch")[:1])
+    """)
+    imported = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, check=True
+    ).stdout
+    assert imported.strip() == "[]"

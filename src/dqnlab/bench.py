@@ -2,7 +2,8 @@
 
 Figures: replay memory per transition and the resident memory of a filled replay, the
 time to sample a minibatch, the update alone, training throughput with the nature preset
-after the replay-start phase, and evaluation throughput at epsilon 0.05.
+after the replay-start phase, and evaluation throughput at epsilon 0.05: the final
+evaluation's (`play_games`, every core) and the periodic one's (`play`, one environment).
 """
 
 from __future__ import annotations
@@ -19,7 +20,7 @@ import torch
 from dqnlab import __version__
 from dqnlab.config import resolve_config
 from dqnlab.errors import DqnlabError
-from dqnlab.evaluate import play
+from dqnlab.evaluate import play, play_games
 from dqnlab.peers import peer_available, run_sb3_dqn
 from dqnlab.replay import ReplayMemory
 from dqnlab.train import TIMED_PARTS, Learner
@@ -155,8 +156,22 @@ def run_benchmark(
             figures["train_frames_per_second"] / figures["peer_train_frames_per_second"]
         )
 
-    # Evaluation at epsilon 0.05.
-    result = play(agent, learner.eval_env, 4, config.eval_epsilon, max_steps=steps)
-    figures["eval_frames_per_second"] = result.frames_per_second
+    # Evaluation at epsilon 0.05, both for `steps` agent steps: the final protocol's games
+    # on every core (as `dqnlab evaluate` plays them, cut when the steps are spent), and the
+    # periodic evaluation's single environment. Worker start-up is not timed.
+    final = play_games(
+        agent,
+        config,
+        config.final_eval_episodes,
+        seed,
+        epsilon=config.eval_epsilon,
+        max_episode_frames=config.final_eval_max_episode_frames,
+        max_steps=steps,
+    )
+    figures["eval_frames_per_second"] = final.frames_per_second
+    figures["eval_envs"] = final.num_envs
+    figures["eval_workers"] = final.workers
+    single = play(agent, learner.eval_env, 4, config.eval_epsilon, max_steps=steps)
+    figures["eval_frames_per_second_single"] = single.frames_per_second
     learner.close()
     return figures

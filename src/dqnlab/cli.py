@@ -1,4 +1,4 @@
-"""The `dqnlab` command: train, evaluate, and list games and presets."""
+"""The `dqnlab` command: train, evaluate, benchmark, ablate, report, inspect, list games and presets."""
 
 from __future__ import annotations
 
@@ -135,17 +135,32 @@ def evaluate(
     ] = None,
     seed: Annotated[int, typer.Option(help="Seed of the evaluation's random streams")] = 12345,
     device: Annotated[str, typer.Option(help="auto, cpu or cuda")] = "auto",
+    video: Annotated[
+        Path | None,
+        typer.Option(help="Film every game into this directory, the score in each file name"),
+    ] = None,
+    video_format: Annotated[
+        str, typer.Option(help="auto (MP4, GIF where no encoder), mp4 or gif")
+    ] = "auto",
 ) -> None:
     """The Nature final protocol: games of at most 18,000 frames, epsilon 0.05, no-op starts.
 
     Evaluating the run's best network (the default) also saves the result as
-    RUN_DIR/final_evaluation.json, which `dqnlab report` reads."""
+    RUN_DIR/final_evaluation.json, which `dqnlab report` reads. With --video the games
+    are played one after another on one emulator and filmed from the raw screens (every
+    emulator frame, 60 frames/s); without it they are spread over every core (other
+    games, the same protocol)."""
     from dqnlab.agent import resolve_device
     from dqnlab.evaluate import final_evaluation, final_evaluation_record, save_final_evaluation
 
-    result, config, checkpoint_path = final_evaluation(
-        run_dir, checkpoint, episodes, seed, resolve_device(device)
-    )
+    if video is None:
+        result, config, checkpoint_path = final_evaluation(
+            run_dir, checkpoint, episodes, seed, resolve_device(device)
+        )
+    else:
+        result, config, checkpoint_path = _filmed_evaluation(
+            run_dir, checkpoint, episodes, seed, resolve_device(device), video, video_format
+        )
     typer.echo(
         f"{config.env}: {result.mean:.2f} ± {result.std:.2f} over {len(result.scores)} games "
         f"({checkpoint_path}, {result.frames} frames at {result.frames_per_second:.0f} frames/s)"
@@ -156,6 +171,41 @@ def evaluate(
     if json_path:
         json_path.parent.mkdir(parents=True, exist_ok=True)
         json_path.write_text(json.dumps(record, indent=2) + "\n")
+
+
+def _filmed_evaluation(  # noqa: ANN202
+    run_dir: Path,
+    checkpoint: str,
+    episodes: int | None,
+    seed: int,
+    device,  # noqa: ANN001
+    out_dir: Path,
+    video_format: str,
+):
+    """`final_evaluation`'s games played on one environment (as with num_envs=1) and filmed."""
+    from dqnlab.evaluate import load_evaluated_agent
+    from dqnlab.video import record_games
+
+    if video_format not in ("auto", "mp4", "gif"):
+        raise DqnlabError(f"--video-format {video_format!r}: choose auto, mp4 or gif")
+    if episodes is not None and episodes <= 0:
+        raise DqnlabError(f"--episodes {episodes} must be positive")
+    agent, config, path, env_seed = load_evaluated_agent(run_dir, checkpoint, seed, device)
+    recording = record_games(
+        agent,
+        config,
+        episodes if episodes is not None else config.final_eval_episodes,
+        env_seed,
+        out_dir,
+        epsilon=config.eval_epsilon,
+        max_episode_frames=config.final_eval_max_episode_frames,
+        video_format=video_format,
+    )
+    for file in recording.paths:
+        typer.echo(f"dqnlab: wrote {file}")
+    if recording.note:
+        typer.echo(f"dqnlab: {recording.video_format.upper()}: {recording.note}")
+    return recording.result, config, path
 
 
 @app.command()
@@ -198,6 +248,196 @@ def bench(
 
 
 @app.command()
+def ablate(
+    env: Annotated[
+        str, typer.Option(help="Atari game (breakout), Gymnasium id or module:EnvClass")
+    ],
+    vary: Annotated[
+        list[str],
+        typer.Option(
+            help="KEY=V1,V2 (values as in --set), or linked settings KEY1+KEY2=A1+A2,B1+B2; repeat for a grid"
+        ),
+    ],
+    seeds: Annotated[int, typer.Option(help="Seeds per setting: SEED, SEED+1, ...")] = 1,
+    seed: Annotated[int, typer.Option(help="The first seed")] = 0,
+    steps: Annotated[
+        int | None, typer.Option(help="Training budget of each run in agent steps")
+    ] = None,
+    preset: Annotated[
+        str | None, typer.Option(help="Base preset (nature for Atari, classic otherwise)")
+    ] = None,
+    set_: Annotated[
+        list[str] | None,
+        typer.Option("--set", help="A setting shared by every run: KEY=VALUE (repeatable)"),
+    ] = None,
+    sweep_dir: Annotated[
+        Path | None, typer.Option(help="Where the runs go (default sweeps/ENV-KEYS)")
+    ] = None,
+    jobs: Annotated[
+        int | None,
+        typer.Option(help="Runs trained side by side (default: what cores and memory allow)"),
+    ] = None,
+    episodes: Annotated[
+        int | None,
+        typer.Option(
+            help="Games of each run's final evaluation (default: final_eval_episodes, 30)"
+        ),
+    ] = None,
+    device: Annotated[str, typer.Option(help="auto, cpu or cuda")] = "auto",
+) -> None:
+    """Train a grid of runs that differ in the --vary settings, then report them together.
+
+    The seed paper's two ablations:
+    dqnlab ablate --env breakout --vary life_loss_terminal=true,false;
+    dqnlab ablate --env breakout --vary optimizer+learning_rate=deepmind_rmsprop+0.00025,rmsprop+0.00005.
+    Running the same command again skips finished runs and resumes interrupted ones."""
+    from dqnlab.ablate import check_sweep_dir, default_jobs, parse_variation, plan_sweep, run_sweep
+    from dqnlab.agent import resolve_device
+    from dqnlab.config import parse_overrides
+    from dqnlab.envs import check_env_name, is_atari
+
+    check_env_name(env)
+    variations = [parse_variation(text) for text in vary]
+    keys = "+".join(key for variation in variations for key in variation.keys)
+    sweep_dir = sweep_dir or Path("sweeps") / f"{env.replace(':', '_').replace('/', '_')}-{keys}"
+    sweep = plan_sweep(
+        env,
+        variations,
+        preset=preset or ("nature" if is_atari(env) else "classic"),
+        overrides=parse_overrides(set_ or []),
+        seeds=seeds,
+        first_seed=seed,
+        steps=steps,
+        sweep_dir=sweep_dir,
+    )
+    check_sweep_dir(sweep)
+    resolve_device(device)  # a bad --device fails here, not in every run
+    if jobs is not None and jobs <= 0:
+        raise DqnlabError(f"--jobs {jobs} must be positive")
+    jobs = jobs or default_jobs(sweep)
+    typer.echo(f"dqnlab: {len(sweep.runs)} runs into {sweep_dir}, {jobs} at a time")
+    run_sweep(sweep, jobs=jobs, device=device, echo=typer.echo)
+    finished = [run.run_dir for run in sweep.runs if run.status in ("ok", "done")]
+    if finished:
+        _report(finished, sweep_dir / "report", episodes, device)
+    if sweep.failed:
+        raise DqnlabError(
+            f"{len(sweep.failed)} of {len(sweep.runs)} runs failed: "
+            + ", ".join(run.name for run in sweep.failed)
+            + "; run the same command again to retry them"
+        )
+
+
+@app.command()
+def report(
+    run_dirs: Annotated[
+        list[Path], typer.Argument(help="Run directories, or sweep directories of runs")
+    ],
+    out: Annotated[
+        Path | None,
+        typer.Option(help="Output directory (default: SWEEP/report for one sweep, else report)"),
+    ] = None,
+    episodes: Annotated[
+        int | None,
+        typer.Option(help="Games of a missing final evaluation (default: final_eval_episodes)"),
+    ] = None,
+    frames: Annotated[int, typer.Option(help="Frames of each run's Q-value figures (0: none)")] = 4,
+    device: Annotated[str, typer.Option(help="auto, cpu or cuda")] = "auto",
+) -> None:
+    """The results table, the learning curves and the Q-values of the best and worst networks.
+
+    Per game: each configuration's final-evaluation mean ± s.d. (over seeds where there
+    are several), Nature DQN's and the seed paper's scores, human-normalised scores with
+    both human baselines; runs are grouped by the settings in which they differ. A run
+    without a final evaluation is evaluated first with its best network (saved, so once).
+    Writes results.md, results.csv, summary.csv, curves-GAME.png/.svg and
+    q-values/RUN/ (a figure per frame, overview.png, q_values.csv)."""
+    if frames < 0:
+        raise DqnlabError(f"--frames {frames} must be 0 or more")
+    if out is None:
+        one_sweep = len(run_dirs) == 1 and not (run_dirs[0] / "config.toml").is_file()
+        out = run_dirs[0] / "report" if one_sweep else Path("report")
+    _report(run_dirs, out, episodes, device, frames)
+
+
+def _report(
+    run_dirs: list[Path], out: Path, episodes: int | None, device: str, frames: int = 4
+) -> None:
+    from dqnlab.agent import resolve_device
+    from dqnlab.report import best_network_evaluator, format_table, write_report
+
+    torch_device = resolve_device(device)
+    written = write_report(
+        run_dirs,
+        out,
+        evaluate_missing=best_network_evaluator(torch_device, episodes=episodes),
+        echo=typer.echo,
+        inspect_frames=frames,
+        device=torch_device,
+    )
+    typer.echo(format_table(written))
+    for note in written.notes:
+        typer.echo(f"note: {note}")
+    figures = [path for curve in written.curves for path in curve.files if path.suffix == ".png"]
+    for path in figures:
+        typer.echo(f"learning curves: {path}")
+    for item in written.inspections:
+        picture = item.inspection.overview_path or item.out_dir
+        typer.echo(f"Q-values of {item.run_dir}: {picture}")
+    typer.echo(f"dqnlab: report in {out / 'results.md'}")
+
+
+@app.command()
+def inspect(
+    run_dir: Annotated[Path, typer.Argument(help="A run directory written by `dqnlab train`")],
+    frames: Annotated[int, typer.Option(help="Frames picked from one evaluation game")] = 8,
+    checkpoints: Annotated[
+        str,
+        typer.Option(
+            help="Networks compared: best, worst and/or evaluation steps, comma-separated"
+        ),
+    ] = "best,worst",
+    observations: Annotated[
+        Path | None,
+        typer.Option(help="A .npy of stacked network inputs to use instead of picked frames"),
+    ] = None,
+    out: Annotated[
+        Path | None, typer.Option(help="Output directory (default RUN_DIR/inspect)")
+    ] = None,
+    seed: Annotated[int, typer.Option(help="Seed of the game the frames are picked from")] = 0,
+    device: Annotated[str, typer.Option(help="auto, cpu or cuda")] = "auto",
+) -> None:
+    """Q-values per action of several networks of a run on the same frames (the seed paper's
+    best-against-worst figure).
+
+    Frames are spread over the best network's first evaluation game (or read from
+    --observations, e.g. an earlier inspection's observations.npy). Writes a figure per
+    frame (the screen and a bar per action and network, greedy actions hatched),
+    overview.png, q_values.csv and the inputs. worst is the network of the lowest
+    periodic evaluation after the first quarter of training; steps need
+    eval_networks_kept = "all"."""
+    from dqnlab.agent import resolve_device
+    from dqnlab.inspection import inspect_run, parse_checkpoints
+
+    if frames <= 0:
+        raise DqnlabError(f"--frames {frames} must be positive")
+    out = out or run_dir / "inspect"
+    inspection = inspect_run(
+        run_dir,
+        out,
+        frames=frames,
+        checkpoints=parse_checkpoints(checkpoints),
+        observations=observations,
+        seed=seed,
+        device=resolve_device(device),
+    )
+    typer.echo(f"{inspection.env}: {inspection.note}")
+    for line in inspection.summary():
+        typer.echo(f"  {line}")
+    typer.echo(f"dqnlab: {len(inspection.figure_paths)} figures and q_values.csv in {out}")
+
+
+@app.command()
 def games() -> None:
     """List the Atari games ale-py ships (names accepted by --env)."""
     from dqnlab.envs.atari import game_names
@@ -218,7 +458,7 @@ def presets(
         typer.echo(" ".join(preset_names()))
         return
     load_preset(name)  # validates the name
-    typer.echo(resources.files("dqnlab").joinpath("presets", f"{name}.toml").read_text(), nl=False)
+    typer.echo((resources.files("dqnlab") / "presets" / f"{name}.toml").read_text(), nl=False)
 
 
 def _keep_freed_memory() -> None:

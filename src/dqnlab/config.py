@@ -23,7 +23,6 @@ if sys.version_info >= (3, 11):
 else:  # pragma: no cover
     import tomli as tomllib
 
-from dqnlab import checkpoints
 from dqnlab.errors import ConfigError
 
 
@@ -182,6 +181,8 @@ RESUMABLE_CHANGES = (
 
 def config_fingerprint(config: Config) -> str:
     """What a checkpoint must match to be resumed: every setting but `RESUMABLE_CHANGES`."""
+    from dqnlab import checkpoints  # torch: kept out of the environment workers' imports
+
     values = config.to_dict()
     for name in RESUMABLE_CHANGES:
         values.pop(name)
@@ -207,7 +208,7 @@ def load_preset(name_or_path: str) -> dict[str, Any]:
     if name_or_path.endswith(".toml") and path.is_file():
         text = path.read_text()
     elif name_or_path in preset_names():
-        text = resources.files("dqnlab").joinpath("presets", f"{name_or_path}.toml").read_text()
+        text = (resources.files("dqnlab") / "presets" / f"{name_or_path}.toml").read_text()
     else:
         raise ConfigError(
             f"unknown preset {name_or_path!r}; accepted: {', '.join(preset_names())} "

@@ -8,25 +8,22 @@ The periodic one plays one environment (`play`): a step budget shared by several
 in parallel would end other games than the sequential protocol. The final one counts
 whole games, so `play_games` plays them on several environments in lockstep, acted for
 in two halves with a batched forward pass each, the environments stepped by worker
-processes, one per core, one half while the player acts for the other. Processes, not
-threads: ale-py holds the GIL while it emulates (ALEInterface.act; a thread emulating
-3,000 frames in one call stalls every other Python thread for those 170 ms), so threads
-stepping Atari games take turns on one core. OpenCV releases it, but emulation is most
-of a step.
+processes (`dqnlab.envs.pool`), one per core, one half while the player acts for the
+other. Processes, not threads: ale-py holds the GIL while it emulates
+(ALEInterface.act; a thread emulating 3,000 frames in one call stalls every other Python
+thread for those 170 ms), so threads stepping Atari games take turns on one core. OpenCV
+releases it, but emulation is most of a step.
 """
 
 from __future__ import annotations
 
 import contextlib
 import json
-import multiprocessing
 import os
 import sys
 import time
-import traceback
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterator
 from dataclasses import dataclass, field
-from multiprocessing.connection import Connection
 from pathlib import Path
 from typing import Any
 
@@ -37,6 +34,7 @@ from dqnlab import checkpoints
 from dqnlab.agent import Agent, build_agent
 from dqnlab.config import Config, config_from_dict, derive_seeds
 from dqnlab.envs import Environment, is_atari, make_env
+from dqnlab.envs.pool import FINISHED, NEW_EPISODE, RUNNING, EnvGroup, EnvWorkers, Lockstep
 from dqnlab.errors import DqnlabError
 from dqnlab.replay import FrameHistory
 
@@ -50,10 +48,12 @@ CONFIG_FILE = "config.toml"
 
 @dataclass
 class EvaluationResult:
-    scores: list[float] = field(default_factory=list)
-    steps: int = 0
-    frames: int = 0
+    scores: list[float] = field(default_factory=list)  # finished games only, in game order
+    steps: int = 0  # agent steps, those of games cut short included
+    frames: int = 0  # raw frames emulated, no-op starts and games cut short included
     seconds: float = 0.0
+    num_envs: int = 1  # environments played at once
+    workers: int = 0  # processes stepping them (0: the player's own)
 
     @property
     def mean(self) -> float:
@@ -112,277 +112,6 @@ def play(
 
 # Whole games on several environments in lockstep -------------------------------------
 
-# What an environment did in its last step (one byte per environment).
-_RUNNING = 0  # its episode goes on: push the observation on its history
-_NEW_EPISODE = 1  # reset (a game start, or an episode that ended without a game end)
-_NEXT_GAME = 2  # a game ended and the environment started its next game
-_FINISHED = 3  # a game ended and the environment has no game left: it stops stepping
-
-_LOCKSTEP_FIELDS = ("actions", "observations", "rewards", "statuses", "frames")
-
-
-@dataclass
-class _Lockstep:
-    """What the player and the environments exchange, one row per environment."""
-
-    actions: np.ndarray  # (envs,) int64, written by the player
-    observations: np.ndarray  # (envs, *frame_shape): each environment's newest observation
-    rewards: np.ndarray  # (envs,) float64: raw reward of the last step
-    statuses: np.ndarray  # (envs,) uint8: _RUNNING ... _FINISHED
-    frames: np.ndarray  # (envs,) int64: raw frames emulated so far, no-ops included
-
-    @staticmethod
-    def layout(
-        num_envs: int, frame_shape: tuple[int, ...], frame_dtype: np.dtype
-    ) -> dict[str, tuple[tuple[int, ...], np.dtype]]:
-        return {
-            "actions": ((num_envs,), np.dtype(np.int64)),
-            "observations": ((num_envs, *frame_shape), np.dtype(frame_dtype)),
-            "rewards": ((num_envs,), np.dtype(np.float64)),
-            "statuses": ((num_envs,), np.dtype(np.uint8)),
-            "frames": ((num_envs,), np.dtype(np.int64)),
-        }
-
-    @classmethod
-    def over(cls, buffers: dict[str, Any], layout: dict[str, Any]) -> _Lockstep:
-        """Arrays over `buffers` (bytes-like objects, shared memory included)."""
-        arrays = {}
-        for name in _LOCKSTEP_FIELDS:
-            shape, dtype = layout[name]
-            count = int(np.prod(shape))
-            arrays[name] = np.frombuffer(buffers[name], dtype=dtype, count=count).reshape(shape)
-        return cls(**arrays)
-
-
-class _EnvGroup:
-    """Some of the environments, each with the number of games it has to play.
-
-    The player acts for the environments in `batches` (ranges of environment ids), one
-    forward pass each; `step(k)` steps this group's environments of batch k.
-    """
-
-    def __init__(
-        self,
-        config: Config,
-        max_episode_frames: int,
-        env_ids: Sequence[int],
-        seeds: Sequence[int],
-        games: Sequence[int],
-        batches: Sequence[range],
-        lockstep: _Lockstep,
-    ) -> None:
-        self.envs: dict[int, Environment] = {}
-        try:
-            for i in env_ids:
-                self.envs[i] = make_env(
-                    config, training=False, seed=seeds[i], max_episode_frames=max_episode_frames
-                )
-        except BaseException:
-            self.close()
-            raise
-        self.games_left = {i: games[i] for i in env_ids}
-        self.batches = [[i for i in batch if i in self.envs] for batch in batches]
-        self.lockstep = lockstep
-
-    def start(self) -> None:
-        """A new game on every environment."""
-        lockstep = self.lockstep
-        for i, env in self.envs.items():
-            lockstep.observations[i] = env.reset(new_game=True)
-            lockstep.rewards[i] = 0.0
-            lockstep.statuses[i] = _NEW_EPISODE
-            lockstep.frames[i] = env.frames
-
-    def step(self, batch: int) -> None:
-        """One step of each environment of the batch with a game left, then its reset if
-        needed (as in `play`: the next game starts right after a game end, with no-ops)."""
-        lockstep = self.lockstep
-        for i in self.batches[batch]:
-            if not self.games_left[i]:
-                continue
-            env = self.envs[i]
-            observation, reward, terminated, truncated = env.step(int(lockstep.actions[i]))
-            if env.game_ended:
-                self.games_left[i] -= 1
-                if self.games_left[i]:
-                    observation, status = env.reset(), _NEXT_GAME
-                else:
-                    status = _FINISHED
-            elif terminated or truncated:  # an environment may end an episode without a game end
-                observation, status = env.reset(), _NEW_EPISODE
-            else:
-                status = _RUNNING
-            lockstep.observations[i] = observation
-            lockstep.rewards[i] = reward
-            lockstep.statuses[i] = status
-            lockstep.frames[i] = env.frames
-
-    # The player's interface, shared with _EnvWorkers: here a step is done when submitted.
-    def submit(self, batch: int) -> None:
-        self.step(batch)
-
-    def wait(self) -> None:
-        pass
-
-    def close(self) -> None:
-        for env in self.envs.values():
-            env.close()
-
-    def __enter__(self) -> _EnvGroup:
-        return self
-
-    def __exit__(self, *exc_info: object) -> None:
-        self.close()
-
-
-_START = b"start"
-_CLOSE = b"close"
-
-
-def _worker(
-    connection: Connection, group_arguments: dict[str, Any], buffers: dict, layout: dict
-) -> None:
-    """A worker process: builds its environments, then runs the player's commands in order
-    (start, a batch index to step, close). Each command is answered with an empty message,
-    or with the traceback of a failure."""
-    import signal
-
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the player's to handle
-    try:
-        group = _EnvGroup(**group_arguments, lockstep=_Lockstep.over(buffers, layout))
-    except Exception:  # noqa: BLE001 - sent to the player, which raises it
-        connection.send_bytes(traceback.format_exc().encode())
-        return
-    with group:
-        connection.send_bytes(b"")
-        while True:
-            command = connection.recv_bytes()
-            try:
-                if command == _CLOSE:
-                    return
-                if command == _START:
-                    group.start()
-                else:
-                    group.step(command[0])
-            except Exception:  # noqa: BLE001
-                connection.send_bytes(traceback.format_exc().encode())
-                return
-            connection.send_bytes(b"")
-
-
-def _process_context() -> multiprocessing.context.BaseContext:
-    """Workers forked from a fresh server process that has imported this module once.
-
-    Plain fork would copy the player's thread pools (torch, OpenCV) into a process that
-    has no threads, a known cause of deadlocks; spawn would import torch in every worker
-    (about 2 s each). Like spawn, it runs the main script again in each worker, so a
-    script must guard its top level with `if __name__ == "__main__":`.
-    """
-    if "forkserver" not in multiprocessing.get_all_start_methods():
-        return multiprocessing.get_context("spawn")
-    context = multiprocessing.get_context("forkserver")
-    context.set_forkserver_preload([__name__])
-    return context
-
-
-class _EnvWorkers:
-    """Worker processes stepping the environments, env i on worker i mod `workers`.
-
-    Observations, actions and rewards travel through shared memory; a pipe per worker
-    carries the commands and their acknowledgements. Commands queue up: the player can
-    submit a batch, act for another while the workers step it, then wait.
-    """
-
-    def __init__(
-        self,
-        config: Config,
-        max_episode_frames: int,
-        seeds: Sequence[int],
-        games: Sequence[int],
-        batches: Sequence[range],
-        layout: dict[str, Any],
-        workers: int,
-    ) -> None:
-        context = _process_context()
-        self.buffers = {
-            name: context.RawArray("B", int(np.prod(shape)) * dtype.itemsize)
-            for name, (shape, dtype) in layout.items()
-        }
-        self.lockstep = _Lockstep.over(self.buffers, layout)
-        self.connections: list[Connection] = []
-        self.processes: list[multiprocessing.process.BaseProcess] = []
-        num_envs = len(seeds)
-        try:
-            for w in range(workers):
-                group_arguments = {
-                    "config": config,
-                    "max_episode_frames": max_episode_frames,
-                    "env_ids": list(range(w, num_envs, workers)),
-                    "seeds": list(seeds),
-                    "games": list(games),
-                    "batches": list(batches),
-                }
-                player_end, worker_end = context.Pipe()
-                process = context.Process(  # type: ignore[attr-defined]
-                    target=_worker,
-                    args=(worker_end, group_arguments, self.buffers, layout),
-                    name=f"dqnlab-eval-{w}",
-                    daemon=True,
-                )
-                process.start()
-                worker_end.close()
-                self.connections.append(player_end)
-                self.processes.append(process)
-            self.wait()  # every worker has built its environments
-        except BaseException:
-            self.close()
-            raise
-
-    def start(self) -> None:
-        self._send(_START)
-        self.wait()
-
-    def submit(self, batch: int) -> None:
-        self._send(bytes((batch,)))
-
-    def _send(self, command: bytes) -> None:
-        for connection in self.connections:
-            connection.send_bytes(command)
-
-    def wait(self) -> None:
-        """Wait for the oldest submitted command to be done by every worker."""
-        for w, connection in enumerate(self.connections):
-            try:
-                reply = connection.recv_bytes()
-            except EOFError:
-                self.processes[w].join(timeout=1)
-                raise DqnlabError(
-                    f"evaluation worker {w} died (exit code {self.processes[w].exitcode}); "
-                    "if its error says the main module is being imported, guard your "
-                    'script with `if __name__ == "__main__":`'
-                ) from None
-            if reply:
-                raise DqnlabError(f"evaluation worker {w} failed:\n{reply.decode()}")
-
-    def close(self) -> None:
-        for connection in self.connections:
-            with contextlib.suppress(OSError):  # a worker that died has closed its end
-                connection.send_bytes(_CLOSE)
-        for process in self.processes:
-            process.join(timeout=10)
-            if process.is_alive():
-                process.terminate()
-                process.join()
-        for connection in self.connections:
-            connection.close()
-        self.connections, self.processes = [], []
-
-    def __enter__(self) -> _EnvWorkers:
-        return self
-
-    def __exit__(self, *exc_info: object) -> None:
-        self.close()
-
 
 class _ActingBatch:
     """A range of environments acted for with one forward pass: their histories, stacked.
@@ -421,31 +150,37 @@ class _ActingBatch:
             actions[i] = _epsilon_greedy(q_values[row], epsilon, agent.rng)
 
     def record(
-        self, lockstep: _Lockstep, score: list[float], game: list[int], result: EvaluationResult
-    ) -> None:
-        """Take in the step just done: push observations, score ended games."""
+        self,
+        lockstep: Lockstep,
+        score: list[float],
+        game: list[int],
+        game_scores: list[float | None],
+    ) -> int:
+        """Take in the step just done: push observations, score ended games (in
+        `game_scores`, by game index). Returns the number of environments stepped."""
+        stepped = len(self.active)
         rows = slice(self.env_ids.start, self.env_ids.stop)
         previous, self.current = self.current, 1 - self.current
         histories = self.histories[self.current]
         np.copyto(histories[:, :-1], self.histories[previous, :, 1:])
         np.copyto(histories[:, -1], lockstep.observations[rows])
-        result.steps += len(self.active)
         finished = False
         for i in self.active:
             score[i] += float(lockstep.rewards[i])
             status = lockstep.statuses[i]
-            if status == _RUNNING:
+            if status == RUNNING:
                 continue
             histories[i - self.env_ids.start, :-1] = 0  # zeros before an episode's start
-            if status == _NEW_EPISODE:
+            if status == NEW_EPISODE:
                 continue
-            result.scores[game[i]] = score[i]
+            game_scores[game[i]] = score[i]
             score[i] = 0.0
             game[i] += len(game)
-            finished = finished or status == _FINISHED
+            finished = finished or status == FINISHED
         if finished:
-            self.active = [i for i in self.active if lockstep.statuses[i] != _FINISHED]
+            self.active = [i for i in self.active if lockstep.statuses[i] != FINISHED]
             self.active_rows = np.array(self.active, dtype=np.int64) - self.env_ids.start
+        return stepped
 
 
 def _cpu_count() -> int:
@@ -500,6 +235,7 @@ def play_games(
     max_episode_frames: int,
     num_envs: int | None = None,
     workers: int | None = None,
+    max_steps: int | None = None,
 ) -> EvaluationResult:
     """Exactly `episodes` whole games at `epsilon`, on `num_envs` environments in lockstep.
 
@@ -511,12 +247,20 @@ def play_games(
     the games depend on the seeds and `num_envs`, never on timing or `workers`. With one
     environment this is `play(..., max_episodes=episodes)`.
 
+    `max_steps` bounds the agent steps of all environments together (a benchmark's
+    budget): a half is stepped only if all its playing environments fit in what is left,
+    and the first half that does not fit ends the play. Games in progress then are
+    abandoned and not scored; their steps and frames are counted. The games finished are
+    those of the unbounded play, with the same scores.
+
     `workers` processes step the environments (default `default_workers`; 0: the player
     steps them itself). While they step one half, the player acts for the other with one
     torch thread, leaving the cores to them; the thread count is restored afterwards.
     """
     if episodes <= 0:
         raise ValueError(f"episodes must be positive, got {episodes}")
+    if max_steps is not None and max_steps <= 0:
+        raise ValueError(f"max_steps must be positive, got {max_steps}")
     if num_envs is None:
         num_envs = default_num_envs(episodes)
     if workers is None:  # one environment cannot overlap with acting: no process to talk to
@@ -532,58 +276,74 @@ def play_games(
     probe = make_env(config, training=False, seed=seeds[0], max_episode_frames=max_episode_frames)
     frame_shape, frame_dtype = probe.observation_shape, np.dtype(probe.observation_dtype)
     probe.close()
-    layout = _Lockstep.layout(num_envs, frame_shape, frame_dtype)
+    layout = Lockstep.layout(num_envs, frame_shape, frame_dtype)
     acting = [
         _ActingBatch(k, ids, config.history_length, frame_shape, frame_dtype)
         for k, ids in enumerate(batches)
     ]
     threads = 1 if workers and agent.device.type == "cpu" else torch.get_num_threads()
-    stepper: _EnvWorkers | _EnvGroup
+    stepper: EnvWorkers | EnvGroup
     if workers:
-        stepper = _EnvWorkers(config, max_episode_frames, seeds, games, batches, layout, workers)
+        stepper = EnvWorkers(config, max_episode_frames, seeds, games, batches, layout, workers)
     else:
-        buffers = {name: bytearray(int(np.prod(s)) * d.itemsize) for name, (s, d) in layout.items()}
-        stepper = _EnvGroup(
-            config, max_episode_frames, range(num_envs), seeds, games, batches,
-            _Lockstep.over(buffers, layout),
-        )  # fmt: skip
+        lockstep = Lockstep.over(Lockstep.buffers(layout), layout)
+        stepper = EnvGroup(
+            config, max_episode_frames, range(num_envs), seeds, games, batches, lockstep
+        )
     with stepper, _torch_threads(threads):
-        return _lockstep_play(agent, stepper, acting, epsilon, episodes)
+        result = _lockstep_play(agent, stepper, acting, epsilon, episodes, max_steps)
+    result.num_envs, result.workers = num_envs, workers
+    return result
 
 
 def _lockstep_play(
     agent: Agent,
-    stepper: _EnvWorkers | _EnvGroup,
+    stepper: EnvWorkers | EnvGroup,
     acting: list[_ActingBatch],
     epsilon: float,
     episodes: int,
+    max_steps: int | None,
 ) -> EvaluationResult:
     """Act for one batch while the other is stepped: act 0, submit 0, act 1, submit 1,
-    wait for 0, act 0, submit 0, wait for 1, ... (the acting order of a plain lockstep)."""
+    wait for 0, act 0, submit 0, wait for 1, ... (the acting order of a plain lockstep).
+
+    A batch is acted for only once it is sure to be stepped, so that a bounded play draws
+    from `agent.rng` as the unbounded one does up to where it stops."""
     lockstep = stepper.lockstep
     num_envs = len(lockstep.statuses)
-    result = EvaluationResult(scores=[0.0] * episodes)
+    budget = max_steps if max_steps is not None else sys.maxsize
+    result = EvaluationResult()
+    game_scores: list[float | None] = [None] * episodes
     game = list(range(num_envs))  # the game each environment is playing
     score = [0.0] * num_envs
+    submitted = 0  # agent steps submitted
     start = time.perf_counter()
     stepper.start()
+    playing = []
     for batch in acting:
         rows = slice(batch.env_ids.start, batch.env_ids.stop)
         batch.histories[batch.current, :, -1] = lockstep.observations[rows]
+        if submitted + len(batch.active) > budget:
+            break
         batch.act(agent, epsilon, lockstep.actions)
         stepper.submit(batch.index)
-    playing = list(acting)
+        submitted += len(batch.active)
+        playing.append(batch)
     while playing:
         for batch in list(playing):
             stepper.wait()
-            batch.record(lockstep, score, game, result)
-            if batch.active:
+            result.steps += batch.record(lockstep, score, game, game_scores)
+            if batch.active and submitted + len(batch.active) <= budget:
                 batch.act(agent, epsilon, lockstep.actions)
                 stepper.submit(batch.index)
+                submitted += len(batch.active)
             else:
+                if batch.active:  # out of budget: no half is stepped any more
+                    budget = submitted
                 playing.remove(batch)
     result.seconds = time.perf_counter() - start
     result.frames = int(lockstep.frames.sum())
+    result.scores = [s for s in game_scores if s is not None]
     return result
 
 
@@ -643,6 +403,31 @@ def load_final_evaluation(run_dir: Path) -> dict[str, Any] | None:
         raise DqnlabError(f"{path} is not valid JSON: {error}") from None
 
 
+def load_evaluated_agent(
+    run_dir: Path, checkpoint: str, seed: int, device: torch.device
+) -> tuple[Agent, Config, Path, int]:
+    """The network `final_evaluation` plays: the agent built from the configuration saved
+    in the checkpoint ("best", "last" or a file path), its weights loaded, and the seed
+    of the evaluation's environments (child 0 of `seed`; child 1 seeds the agent)."""
+    if checkpoint in ("best", "last"):
+        load_run_config(run_dir)  # a clear error if RUN_DIR is not a run
+        path = run_dir / "checkpoints" / f"{checkpoint}.pt"
+    else:
+        path = Path(checkpoint)
+    payload = checkpoints.load(path, map_location=device)
+    config = config_from_dict(payload["config"])
+    weights = payload["network"] if "network" in payload else payload["agent"]["online"]
+    env_seed, agent_seed = derive_seeds(seed, 2)
+    probe = make_env(config, training=False, seed=env_seed)  # for the network's shapes
+    agent = build_agent(config, probe, device, agent_seed)
+    probe.close()
+    try:
+        agent.online.load_state_dict(weights)
+    except RuntimeError as error:
+        raise DqnlabError(f"checkpoint {path} does not fit its network: {error}") from None
+    return agent, config, path, env_seed
+
+
 def final_evaluation(
     run_dir: Path,
     checkpoint: str,
@@ -660,27 +445,12 @@ def final_evaluation(
     configuration saved in the checkpoint itself, so a checkpoint file from another run
     evaluates with its own settings.
     """
-    if checkpoint in ("best", "last"):
-        load_run_config(run_dir)  # a clear error if RUN_DIR is not a run
-        path = run_dir / "checkpoints" / f"{checkpoint}.pt"
-    else:
-        path = Path(checkpoint)
-    payload = checkpoints.load(path, map_location=device)
-    config = config_from_dict(payload["config"])
-    weights = payload["network"] if "network" in payload else payload["agent"]["online"]
-    count = episodes if episodes is not None else config.final_eval_episodes
-    if count <= 0:
-        raise DqnlabError(f"--episodes {count} must be positive")
+    if episodes is not None and episodes <= 0:
+        raise DqnlabError(f"--episodes {episodes} must be positive")
     if num_envs is not None and num_envs <= 0:
         raise DqnlabError(f"num_envs {num_envs} must be positive")
-    env_seed, agent_seed = derive_seeds(seed, 2)
-    probe = make_env(config, training=False, seed=env_seed)  # for the network's shapes
-    agent = build_agent(config, probe, device, agent_seed)
-    probe.close()
-    try:
-        agent.online.load_state_dict(weights)
-    except RuntimeError as error:
-        raise DqnlabError(f"checkpoint {path} does not fit its network: {error}") from None
+    agent, config, path, env_seed = load_evaluated_agent(run_dir, checkpoint, seed, device)
+    count = episodes if episodes is not None else config.final_eval_episodes
     result = play_games(
         agent,
         config,

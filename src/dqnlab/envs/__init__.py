@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import difflib
 import importlib
-from typing import Protocol
+from typing import Any, Protocol
 
 import gymnasium as gym
 import numpy as np
@@ -49,12 +49,18 @@ def is_atari(env_name: str) -> bool:
 
 
 def make_env(
-    config: Config, *, training: bool, seed: int, max_episode_frames: int | None = None
+    config: Config,
+    *,
+    training: bool,
+    seed: int,
+    max_episode_frames: int | None = None,
+    render_mode: str | None = None,
 ) -> Environment:
     """Build the environment named by `config.env`.
 
     `max_episode_frames` overrides the configured cap (evaluation uses its own caps);
-    for a non-Atari environment a frame is a step.
+    for a non-Atari environment a frame is a step. `render_mode` is Gymnasium's, for a
+    non-Atari environment (an Atari game's frames come from `AtariEnv.frame_callback`).
     """
     cap = config.max_episode_frames if max_episode_frames is None else max_episode_frames
     name = config.env
@@ -75,7 +81,7 @@ def make_env(
             life_loss_terminal=config.life_loss_terminal,
             max_episode_frames=cap,
         )
-    env = _make_gymnasium(name)
+    env = _make_gymnasium(name, render_mode)
     try:
         return GymnasiumEnv(env, seed=seed, max_episode_steps=cap)
     except EnvError:
@@ -94,19 +100,26 @@ def check_env_name(name: str) -> None:
         env.close()
 
 
-def _make_gymnasium(name: str) -> gym.Env:
+def _make_gymnasium(name: str, render_mode: str | None = None) -> gym.Env:
     if not name:
         raise EnvError("no environment given; pass --env (e.g. pong, CartPole-v1)")
     if ":" in name and "/" not in name.split(":")[0]:
-        return _make_from_entry_point(name)
+        return _make_from_entry_point(name, render_mode)
     try:
-        return gym.make(name)
+        return gym.make(name, **_render_kwargs(render_mode))
     except gym.error.Error as error:
         raise EnvError(_unknown_env_message(name, error)) from None
 
 
-def _make_from_entry_point(name: str) -> gym.Env:
-    """`module:EnvClass` (any callable returning an env), or Gymnasium's `module:Env-v0`."""
+def _render_kwargs(render_mode: str | None) -> dict[str, Any]:
+    """No render_mode argument at all unless one is asked for: gym.make passes even None
+    on to the environment's constructor, which may take no such argument."""
+    return {} if render_mode is None else {"render_mode": render_mode}
+
+
+def _make_from_entry_point(name: str, render_mode: str | None = None) -> gym.Env:
+    """`module:EnvClass` (any callable returning an env, called without arguments), or
+    Gymnasium's `module:Env-v0` (made with `render_mode`)."""
     module_name, _, attribute = name.partition(":")
     try:
         module = importlib.import_module(module_name)
@@ -115,7 +128,7 @@ def _make_from_entry_point(name: str) -> gym.Env:
     factory = getattr(module, attribute, None)
     if factory is None:  # importing the module may have registered the id
         try:
-            return gym.make(attribute)
+            return gym.make(attribute, **_render_kwargs(render_mode))
         except gym.error.Error as error:
             raise EnvError(_unknown_env_message(name, error)) from None
     try:

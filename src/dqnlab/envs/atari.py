@@ -26,11 +26,11 @@ alone). No-op frames are not repeated and their rewards are dropped.
 from __future__ import annotations
 
 import pickle
+from collections.abc import Callable
 from typing import Any
 
 import cv2
 import numpy as np
-import torch
 from ale_py import Action, ALEInterface, LoggerMode, roms
 
 from dqnlab.errors import EnvError
@@ -179,7 +179,10 @@ class AtariEnv:
         self.ale.setFloat("repeat_action_probability", float(sticky_action_probability))
         self.ale.setInt("frame_skip", 1)  # the repeat is done here, to pool and watch lives
         self.ale.setInt("max_num_frames_per_episode", 0)  # the cap is applied here
-        self.ale.loadROM(roms.get_rom_path(game))
+        rom = roms.get_rom_path(game)
+        if rom is None:  # game_names() lists only the ROMs ale-py ships
+            raise EnvError(f"ale-py ships no ROM for {game!r}")
+        self.ale.loadROM(rom)
         actions = (
             self.ale.getLegalActionSet() if full_action_space else self.ale.getMinimalActionSet()
         )
@@ -209,13 +212,19 @@ class AtariEnv:
         self.frames = 0  # raw frames emulated by this environment, no-ops included
         self.game_over = True  # no game started yet
         self.truncated = False
+        # Called with every raw frame painted, no-ops included: the RGB screen (210, 160, 3)
+        # in a buffer that a later frame overwrites. For videos; None costs one test a frame.
+        self.frame_callback: Callable[[np.ndarray], None] | None = None
 
     # Raw frames ---------------------------------------------------------------------
 
     def _paint(self) -> None:
         """Put the current screen in the pool (GameScreen:paint)."""
         self._newest ^= 1
-        self.ale.getScreenRGB(self._screens[self._newest])
+        screen = self._screens[self._newest]
+        self.ale.getScreenRGB(screen)
+        if self.frame_callback is not None:
+            self.frame_callback(screen)
 
     def _act_frame(self, action: Action) -> float:
         reward = self.ale.act(action)
@@ -285,6 +294,8 @@ class AtariEnv:
 
     def state_dict(self) -> dict[str, Any]:
         """Everything needed to continue exactly: the emulator (with its RNG), the pool."""
+        import torch  # kept out of the environment workers' imports
+
         return {
             "ale": pickle.dumps(self.ale.cloneState(include_rng=True)),
             "rng": self.rng.bit_generator.state,

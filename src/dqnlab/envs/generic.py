@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import pickle
 import warnings
+from collections.abc import Callable
 from typing import Any
 
 import gymnasium as gym
@@ -60,6 +61,9 @@ class GymnasiumEnv:
         self.frames = 0  # for a non-Atari environment a frame is a step
         self.game_over = True
         self.truncated = False
+        # Called with `env.render()` after every reset and step (videos): the env must have
+        # been made with render_mode="rgb_array" for that to be an image.
+        self.frame_callback: Callable[[Any], None] | None = None
 
     def state_dict(self) -> dict[str, Any]:
         """The whole environment pickled (Gymnasium envs such as CartPole pickle with their
@@ -111,6 +115,8 @@ class GymnasiumEnv:
         self._episode_steps = 0
         self.game_over = False
         self.truncated = False
+        if self.frame_callback is not None:
+            self._send_frame()
         return self._convert(observation)
 
     def step(self, action: int) -> tuple[np.ndarray, float, bool, bool]:
@@ -121,7 +127,18 @@ class GymnasiumEnv:
             truncated = True
         self.game_over = bool(terminated)
         self.truncated = bool(truncated) and not terminated
+        if self.frame_callback is not None:
+            self._send_frame()
         return self._convert(observation), float(reward), bool(terminated), self.truncated
+
+    def _send_frame(self) -> None:
+        assert self.frame_callback is not None
+        try:
+            frame = self.env.render()
+        except gym.error.Error as error:  # e.g. pygame missing for the classic-control envs
+            name = self.env.spec.id if self.env.spec else type(self.env.unwrapped).__name__
+            raise EnvError(f"{name} cannot render its frames: {error}") from None
+        self.frame_callback(frame)
 
     def close(self) -> None:
         self.env.close()
