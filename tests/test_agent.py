@@ -130,7 +130,7 @@ def _reference_updates(network: nn.Module, batches, config, steps: int) -> list[
     return params
 
 
-def _random_batches(count: int, seed: int) -> list[Batch]:
+def _random_batches(count: int, seed: int, shared_window: bool = False) -> list[Batch]:
     rng = np.random.default_rng(seed)
     batches = []
     for _ in range(count):
@@ -143,21 +143,25 @@ def _random_batches(count: int, seed: int) -> list[Batch]:
                 rewards=rng.choice([-1.0, 0.0, 1.0], size=32).astype(np.float32),
                 terminals=(rng.random(32) < 0.2).astype(np.float32),
                 next_observations=window[:, 1:],
+                window=window if shared_window else None,
             )
         )
     return batches
 
 
+@pytest.mark.parametrize("shared_window", [False, True], ids=["two-copies", "window-once"])
 @pytest.mark.parametrize(
     "compile_update", [False, pytest.param(True, marks=pytest.mark.slow, id="compiled")]
 )
-def test_update_matches_a_plain_reference_implementation(nature, compile_update) -> None:
+def test_update_matches_a_plain_reference_implementation(
+    nature, compile_update, shared_window
+) -> None:
     torch.manual_seed(3)
     network = NatureCNN((4, 84, 84), num_actions=6)
     initial = [p.detach().clone() for p in network.parameters()]
     expected = _reference_updates(network, _random_batches(4, seed=5), nature, steps=4)
     agent = Agent(network, 6, nature, torch.device("cpu"), seed=0, compile_update=compile_update)
-    for batch in _random_batches(4, seed=5):
+    for batch in _random_batches(4, seed=5, shared_window=shared_window):
         loss = agent.update(batch)
     assert loss.shape == () and not loss.requires_grad
     assert agent.updates == 4

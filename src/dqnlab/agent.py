@@ -119,12 +119,19 @@ class Agent:
         # the C allocator return memory and fault it back in, which cost more (2 ms)
         # than the two passes over the gradients that set_to_none=True saves.
         self.optimizer.zero_grad(set_to_none=False)
+        if batch.window is not None:  # the shared frames cross to the device once
+            window = torch.from_numpy(batch.window).to(device)
+            history = window.shape[1] - 1
+            observations, next_observations = window[:, :history], window[:, 1:]
+        else:
+            observations = torch.from_numpy(batch.observations).to(device)
+            next_observations = torch.from_numpy(batch.next_observations).to(device)
         loss = self._loss_and_backward(
-            torch.from_numpy(batch.observations).to(device),
+            observations,
             torch.from_numpy(batch.actions).to(device),
             torch.from_numpy(batch.rewards).to(device),
             torch.from_numpy(batch.terminals).to(device),
-            torch.from_numpy(batch.next_observations).to(device),
+            next_observations,
         )
         self._optimizer_step()
         self.updates += 1

@@ -16,6 +16,7 @@ app = typer.Typer(
     add_completion=False,
     no_args_is_help=True,
     pretty_exceptions_enable=False,
+    rich_markup_mode="markdown",
     help="The Nature DQN exactly as DeepMind ran it, on Atari or any discrete-action Gymnasium env.",
 )
 
@@ -288,8 +289,10 @@ def ablate(
     """Train a grid of runs that differ in the --vary settings, then report them together.
 
     The seed paper's two ablations:
-    dqnlab ablate --env breakout --vary life_loss_terminal=true,false;
-    dqnlab ablate --env breakout --vary optimizer+learning_rate=deepmind_rmsprop+0.00025,rmsprop+0.00005.
+
+    * `dqnlab ablate --env breakout --vary life_loss_terminal=true,false`
+    * `dqnlab ablate --env breakout --vary optimizer+learning_rate=deepmind_rmsprop+0.00025,rmsprop+0.00005`
+
     Running the same command again skips finished runs and resumes interrupted ones."""
     from dqnlab.ablate import check_sweep_dir, default_jobs, parse_variation, plan_sweep, run_sweep
     from dqnlab.agent import resolve_device
