@@ -15,6 +15,7 @@ import torch
 from matplotlib.patches import Rectangle
 
 from dqnlab import checkpoints
+from dqnlab.checkpoints import eval_network_path
 from dqnlab.config import Config, config_from_dict, config_to_toml, derive_seeds, resolve_config
 from dqnlab.envs import make_env
 from dqnlab.envs.atari import preprocess
@@ -29,7 +30,7 @@ from dqnlab.inspection import (
 )
 from dqnlab.logs import read_csv
 from dqnlab.networks import build_network
-from dqnlab.train import eval_network_path, prepare_run_dir, train
+from dqnlab.train import prepare_run_dir, train
 
 FRAMES = 3
 MAX_GAME_STEPS = 200  # enough for the test, cheap to play twice

@@ -10,10 +10,10 @@ import torch
 
 from dqnlab import checkpoints
 from dqnlab.agent import Agent
-from dqnlab.checkpoints import CheckpointStore
+from dqnlab.checkpoints import CheckpointStore, eval_network_path
 from dqnlab.config import resolve_config
 from dqnlab.evaluate import load_run_config
-from dqnlab.train import eval_network_path, keep_evaluated_network, prepare_run_dir, train
+from dqnlab.train import keep_evaluated_network, prepare_run_dir, train
 
 
 def test_update_and_target_copy_timing(tmp_path: Path, monkeypatch) -> None:

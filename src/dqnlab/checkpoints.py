@@ -78,6 +78,11 @@ def load(path: Path, map_location: str | torch.device = "cpu") -> dict[str, Any]
     return payload
 
 
+def eval_network_path(run_dir: Path, step: int) -> Path:
+    """Where `eval_networks_kept = "all"` keeps the network evaluated at `step`."""
+    return run_dir / "checkpoints" / EVAL_NETWORKS_DIR / f"step-{step:09d}.pt"
+
+
 # Training checkpoints ------------------------------------------------------------------
 
 STORE_FORMAT = "dqnlab-training-checkpoint-1"
@@ -86,6 +91,7 @@ STATE_FILE = "state.pt"
 REPLAY_DIR = "replay"
 # 16,384 slots is 115 MB of 84x84 frames: a save rewrites at most two partly changed chunks
 # per changed range (<= 230 MB wasted), and a 1M replay is 62 files per array.
+EVAL_NETWORKS_DIR = "evals"  # under a run's checkpoints/: one network per periodic evaluation
 DEFAULT_CHUNK_SLOTS = 16_384
 _IO_PIECE_BYTES = 16 * 2**20  # checksum and write in pieces: no copy of a whole chunk
 _MANIFEST_SLACK_BYTES = 2**20

@@ -34,6 +34,7 @@ from matplotlib.patches import Patch
 
 from dqnlab import checkpoints
 from dqnlab.agent import Agent, build_agent
+from dqnlab.checkpoints import EVAL_NETWORKS_DIR, eval_network_path
 from dqnlab.config import Config, config_from_dict, derive_seeds
 from dqnlab.envs import Environment, make_env
 from dqnlab.envs.atari import AtariEnv
@@ -41,7 +42,6 @@ from dqnlab.errors import DqnlabError
 from dqnlab.evaluate import load_run_config
 from dqnlab.logs import read_csv
 from dqnlab.replay import FrameHistory
-from dqnlab.train import EVAL_NETWORKS_DIR, eval_network_path
 
 CHECKPOINT_NAMES = ("best", "worst")
 DEFAULT_FRAMES = 8

@@ -517,14 +517,6 @@ def train(
     )
 
 
-EVAL_NETWORKS_DIR = "evals"
-
-
-def eval_network_path(run_dir: Path, step: int) -> Path:
-    """Where `eval_networks_kept = "all"` keeps the network evaluated at `step`."""
-    return run_dir / "checkpoints" / EVAL_NETWORKS_DIR / f"step-{step:09d}.pt"
-
-
 def keep_evaluated_network(
     run_dir: Path,
     config: Config,
@@ -538,7 +530,7 @@ def keep_evaluated_network(
     the last three quarters of the budget (the seed paper compares the best network with
     "a network that performed poorly very late into training"; ties go to the later)."""
     if config.eval_networks_kept == "all":
-        checkpoints.save(eval_network_path(run_dir, step), payload)
+        checkpoints.save(checkpoints.eval_network_path(run_dir, step), payload)
     quarter = config.total_steps / 4
     if step >= quarter and all(mean <= m for s, m in earlier if s >= quarter):
         checkpoints.save(run_dir / "checkpoints" / "worst.pt", payload)
