@@ -415,6 +415,17 @@ def load_evaluated_agent(
     else:
         path = Path(checkpoint)
     payload = checkpoints.load(path, map_location=device)
+    agent, config, env_seed = agent_from_checkpoint(payload, path, seed, device)
+    return agent, config, path, env_seed
+
+
+def agent_from_checkpoint(
+    payload: dict[str, Any], path: Path, seed: int, device: torch.device
+) -> tuple[Agent, Config, int]:
+    """An agent with the network saved in `payload` (a network file or a training
+    checkpoint's state, read from `path`), built with the configuration saved beside it,
+    its epsilon-greedy draws seeded with child 1 of `seed`; and child 0, which seeds the
+    environments it plays."""
     config = config_from_dict(payload["config"])
     weights = payload["network"] if "network" in payload else payload["agent"]["online"]
     env_seed, agent_seed = derive_seeds(seed, 2)
@@ -425,7 +436,7 @@ def load_evaluated_agent(
         agent.online.load_state_dict(weights)
     except RuntimeError as error:
         raise DqnlabError(f"checkpoint {path} does not fit its network: {error}") from None
-    return agent, config, path, env_seed
+    return agent, config, env_seed
 
 
 def final_evaluation(

@@ -33,13 +33,13 @@ from matplotlib.figure import Figure
 from matplotlib.patches import Patch
 
 from dqnlab import checkpoints
-from dqnlab.agent import Agent, build_agent
+from dqnlab.agent import Agent
 from dqnlab.checkpoints import EVAL_NETWORKS_DIR, eval_network_path
-from dqnlab.config import Config, config_from_dict, derive_seeds
+from dqnlab.config import Config, derive_seeds
 from dqnlab.envs import Environment, make_env
 from dqnlab.envs.atari import AtariEnv
 from dqnlab.errors import DqnlabError
-from dqnlab.evaluate import load_run_config
+from dqnlab.evaluate import agent_from_checkpoint, load_run_config
 from dqnlab.logs import read_csv
 from dqnlab.replay import FrameHistory
 
@@ -187,15 +187,7 @@ def load_network(
     """The network saved at `path`, built with the configuration it was trained with, in
     an agent seeded with `seed` (its epsilon-greedy draws)."""
     payload = checkpoints.load(path, map_location=device)
-    config = config_from_dict(payload["config"])
-    env_seed, agent_seed = derive_seeds(seed, 2)
-    probe = make_env(config, training=False, seed=env_seed)  # for the network's shapes
-    agent = build_agent(config, probe, device, agent_seed)
-    probe.close()
-    try:
-        agent.online.load_state_dict(payload["network"])
-    except RuntimeError as error:
-        raise DqnlabError(f"checkpoint {path} does not fit its network: {error}") from None
+    agent, config, _ = agent_from_checkpoint(payload, path, seed, device)
     agent.online.eval()
     step = int(payload["step"])
     eval_mean = float(payload.get("eval_mean", float("nan")))
