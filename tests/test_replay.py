@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import torch
 
 from dqnlab.errors import ResourceError
 from dqnlab.replay import FrameHistory, ReplayMemory, replay_bytes
@@ -174,3 +175,45 @@ def test_sampling_an_empty_or_incomplete_memory_raises() -> None:
         replay.sample()
     replay.add(frame(2), 0, 0.0, False)
     assert replay.sample_indices(4).tolist() == [0, 0, 0, 0]
+
+
+@pytest.mark.parametrize("capacity", [40, 1000], ids=["wrapped", "filling"])
+def test_frames_kept_on_the_device_sample_the_same_batches(capacity: int) -> None:
+    """The device path (here the CPU as the device: the GPU's code, run without one)
+    gathers the same transitions as host memory, zeros before episode starts included."""
+    rng = np.random.default_rng(7)
+    blanked = 0
+    host = ReplayMemory(capacity, (3, 2), np.uint8, 4, 16, seed=3)
+    device = ReplayMemory(capacity, (3, 2), np.uint8, 4, 16, seed=3, device=torch.device("cpu"))
+    for step in range(300):
+        observation = rng.integers(0, 256, size=(3, 2), dtype=np.uint8)
+        if step % 9 == 8:
+            for replay in (host, device):
+                replay.add_last(observation)
+        else:
+            for replay in (host, device):
+                replay.add(observation, step % 4, float(step), step % 9 == 7)
+        if step > 20 and step % 4 == 0:
+            expected, got = host.sample(), device.sample()
+            assert isinstance(got.window, torch.Tensor) and isinstance(expected.window, np.ndarray)
+            np.testing.assert_array_equal(got.window.numpy(), expected.window)
+            np.testing.assert_array_equal(got.observations.numpy(), expected.observations)
+            np.testing.assert_array_equal(got.next_observations.numpy(), expected.next_observations)
+            np.testing.assert_array_equal(got.actions, expected.actions)
+            np.testing.assert_array_equal(got.terminals, expected.terminals)
+            blanked += int(np.all(expected.window == 0, axis=(2, 3)).any())
+    assert blanked > 0  # windows reaching back across an episode start were compared
+
+
+def test_upload_copies_frames_loaded_into_the_host_arrays() -> None:
+    """A checkpoint loads into the host arrays; upload brings the device copy up to date."""
+    source = memory()
+    fill_episode(source, 1, 15)
+    replay = ReplayMemory(20, (2, 2), np.uint8, 4, 1, seed=0, device=torch.device("cpu"))
+    for name, array in replay.arrays.items():
+        array[...] = source.arrays[name]
+    replay.load_state_dict(source.state_dict())
+    replay.upload()
+    for _ in range(20):
+        expected, got = source.sample(), replay.sample()
+        np.testing.assert_array_equal(got.observations.numpy(), expected.observations)

@@ -97,3 +97,32 @@ def test_worst_network_is_chosen_after_the_first_quarter(tmp_path: Path) -> None
             assert not worst.exists()
     assert checkpoints.load(worst)["step"] == 1000  # 20.0 at 750 and 1000: the later
     assert not (tmp_path / "checkpoints" / "evals").exists()  # only best and worst kept
+
+
+def test_replay_frames_on_the_device_train_and_resume_the_same(tmp_path: Path) -> None:
+    """replay_storage = device (the GPU's code path, here with the CPU as the device)
+    learns exactly what host memory learns, also across a resume, which must copy the
+    loaded frames to the device."""
+    settings = {
+        "env": "breakout", "replay_start_steps": 100, "replay_capacity": 500, "batch_size": 8,
+        "eval_period_steps": 150, "eval_steps": 50, "checkpoints_kept": 1,
+    }  # fmt: skip
+
+    def weights(run: str, storage: str, steps: list[int]) -> list[torch.Tensor]:
+        for n, total in enumerate(steps):
+            config = resolve_config("nature", replay_storage=storage, total_steps=total, **settings)
+            if n == 0:
+                prepare_run_dir(tmp_path / run, force=False)
+            train(config, tmp_path / run, torch.device("cpu"), progress=False,
+                  tensorboard=False, resume=n > 0)  # fmt: skip
+        return list(
+            checkpoints.load(tmp_path / run / "checkpoints" / "last.pt")["network"].values()
+        )
+
+    def same(a: list[torch.Tensor], b: list[torch.Tensor]) -> bool:
+        return all(torch.equal(x, y) for x, y in zip(a, b, strict=True))
+
+    host = weights("host", "host", [600])
+    assert not same(host, weights("short", "host", [450]))  # the last steps change them
+    assert same(host, weights("device", "device", [600]))
+    assert same(host, weights("resumed", "device", [300, 600]))

@@ -120,12 +120,12 @@ class Agent:
         # than the two passes over the gradients that set_to_none=True saves.
         self.optimizer.zero_grad(set_to_none=False)
         if batch.window is not None:  # the shared frames cross to the device once
-            window = torch.from_numpy(batch.window).to(device)
+            window = _on_device(batch.window, device)
             history = window.shape[1] - 1
             observations, next_observations = window[:, :history], window[:, 1:]
         else:
-            observations = torch.from_numpy(batch.observations).to(device)
-            next_observations = torch.from_numpy(batch.next_observations).to(device)
+            observations = _on_device(batch.observations, device)
+            next_observations = _on_device(batch.next_observations, device)
         loss = self._loss_and_backward(
             observations,
             torch.from_numpy(batch.actions).to(device),
@@ -178,6 +178,12 @@ class Agent:
         self.optimizer.load_state_dict(state["optimizer"])
         self.rng.bit_generator.state = state["rng"]
         self.updates = int(state["updates"])
+
+
+def _on_device(frames: np.ndarray | torch.Tensor, device: torch.device) -> torch.Tensor:
+    """A batch's frames as a tensor on `device` (a no-op for frames already there)."""
+    tensor = frames if isinstance(frames, torch.Tensor) else torch.from_numpy(frames)
+    return tensor.to(device)
 
 
 def resolve_device(name: str) -> torch.device:

@@ -23,7 +23,7 @@ from dqnlab.errors import DqnlabError
 from dqnlab.evaluate import play, play_games
 from dqnlab.peers import peer_available, run_sb3_dqn
 from dqnlab.replay import ReplayMemory
-from dqnlab.train import TIMED_PARTS, Learner
+from dqnlab.train import TIMED_PARTS, Learner, replay_device
 
 
 def _resident_bytes() -> int:
@@ -94,7 +94,9 @@ def run_benchmark(
 
     # Replay memory: resident size once every slot has been written.
     before = _resident_bytes()
-    replay = ReplayMemory(replay_capacity, (84, 84), np.uint8, 4, 32, seed)
+    on_device = replay_device(config, device, (84, 84), np.dtype(np.uint8))
+    figures["replay_storage"] = "host" if on_device is None else f"host and {on_device}"
+    replay = ReplayMemory(replay_capacity, (84, 84), np.uint8, 4, 32, seed, device=on_device)
     _fill(replay, np.random.default_rng(seed))
     figures["replay_resident_bytes"] = _resident_bytes() - before
     figures["replay_bytes_per_transition"] = replay.bytes_per_transition

@@ -101,6 +101,12 @@ class Config:
     compile_update: bool = _setting(
         False, "torch.compile the update (needs a C++ compiler; ~25 s once; ~13% faster on CPU)"
     )
+    replay_storage: str = _setting(
+        "auto",
+        "host: minibatches gathered in host memory and copied to the device; device: the "
+        "frames also kept on the training device and minibatches gathered there (GPU memory "
+        "for a copy of the frames); auto: device on a GPU with room for them, else host",
+    )
     # Checkpoints (the whole training state; a killed run resumes exactly).
     checkpoint_period_minutes: float = _setting(
         30.0, "Wall-clock minutes between checkpoints, besides one at every evaluation"
@@ -130,6 +136,7 @@ _CHOICES = {
     "optimizer": ("deepmind_rmsprop", "rmsprop", "adam"),
     "on_checkpoint_error": ("stop", "continue"),
     "eval_networks_kept": ("all", "best_and_worst"),
+    "replay_storage": ("auto", "host", "device"),
 }
 
 
@@ -175,7 +182,7 @@ def _validate(config: Config) -> None:
 # Settings that do not shape the training state: a run may resume with them changed.
 RESUMABLE_CHANGES = (
     "total_steps", "compile_update", "checkpoint_period_minutes", "checkpoint_period_steps",
-    "checkpoints_kept", "on_checkpoint_error", "eval_networks_kept",
+    "checkpoints_kept", "on_checkpoint_error", "eval_networks_kept", "replay_storage",
 )  # fmt: skip
 
 

@@ -10,10 +10,16 @@ boundary are zeros, as at an episode start while acting (`FrameHistory`).
 
 Memory per transition is one frame plus 10 bytes (action, reward, two flags): a 1M Atari
 replay is 7.07 GB, like the Lua code's byte tensor (TransitionTable.lua).
+
+With a `device` (a GPU), the frames are also kept there and minibatches are gathered
+there: nothing but the slot numbers crosses to the device per update. The host arrays
+stay the reference (checkpoints read and load them; `upload` copies them over after a
+load), and the sampled transitions are the same either way.
 """
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from typing import Any
 
@@ -42,16 +48,19 @@ def check_memory(required_bytes: int, what: str) -> None:
 
 @dataclass
 class Batch:
-    """Views into the memory's reusable sampling buffers: valid until the next sample."""
+    """Views into the memory's reusable sampling buffers: valid until the next sample.
 
-    observations: np.ndarray  # (batch, history, *frame_shape)
+    The frames are NumPy arrays, or tensors already on the device when the memory keeps
+    its frames there."""
+
+    observations: np.ndarray | torch.Tensor  # (batch, history, *frame_shape)
     actions: np.ndarray  # (batch,) int64
     rewards: np.ndarray  # (batch,) float32
     terminals: np.ndarray  # (batch,) float32, 1.0 where the next state is terminal
-    next_observations: np.ndarray  # (batch, history, *frame_shape)
+    next_observations: np.ndarray | torch.Tensor  # (batch, history, *frame_shape)
     # (batch, history + 1, *frame_shape) when both are views of it (observations the first
     # `history` frames, next_observations the last): a device copies it once, not twice.
-    window: np.ndarray | None = None
+    window: np.ndarray | torch.Tensor | None = None
 
 
 class ReplayMemory:
@@ -63,6 +72,7 @@ class ReplayMemory:
         history_length: int,
         batch_size: int,
         seed: int,
+        device: torch.device | None = None,
     ) -> None:
         frame_dtype = np.dtype(frame_dtype)
         check_memory(replay_bytes(capacity, frame_shape, frame_dtype), "the replay memory")
@@ -99,6 +109,21 @@ class ReplayMemory:
             next_observations=self._window[:, 1:],
             window=self._window,
         )
+        self.device = device
+        if device is not None:  # the same buffers, on the device
+            self._device_frames = torch.zeros(
+                self._frames_view.shape, dtype=self._frames_view.dtype, device=device
+            )
+            self._device_window = torch.zeros(
+                self._window.shape, dtype=self._frames_view.dtype, device=device
+            )
+            self._device_slots = torch.zeros(self._slots.size, dtype=torch.int64, device=device)
+            self._batch = dataclasses.replace(
+                self._batch,
+                observations=self._device_window[:, :history_length],
+                next_observations=self._device_window[:, 1:],
+                window=self._device_window,
+            )
 
     @property
     def bytes_per_transition(self) -> float:
@@ -119,6 +144,8 @@ class ReplayMemory:
     ) -> None:
         slot = self.position
         self.frames[slot] = observation
+        if self.device is not None:
+            self._device_frames[slot] = self._frames_view[slot]
         self.actions[slot] = action
         self.rewards[slot] = reward
         self.terminals[slot] = terminal
@@ -169,14 +196,26 @@ class ReplayMemory:
             mask[:, j] = mask[:, j + 1] & ~self.is_last[self._slots[:, j]]
             if self.size < self.capacity:  # before the first write there is nothing
                 mask[:, j] &= raw_slots[:, j] >= 0
-        torch.index_select(self._frames_view, 0, self._slots_view, out=self._window_view)
-        if not mask.all():
-            self._window[~mask] = 0
+        if self.device is None:
+            torch.index_select(self._frames_view, 0, self._slots_view, out=self._window_view)
+            if not mask.all():
+                self._window[~mask] = 0
+        else:
+            self._device_slots.copy_(self._slots_view)
+            frames = self._device_window.view(-1, *self.frame_shape)
+            torch.index_select(self._device_frames, 0, self._device_slots, out=frames)
+            if not mask.all():
+                self._device_window[torch.from_numpy(~mask).to(self.device)] = 0
         batch = self._batch
         batch.actions[:] = self.actions[indices]
         batch.rewards[:] = self.rewards[indices]
         batch.terminals[:] = self.terminals[indices]
         return batch
+
+    def upload(self) -> None:
+        """Copy the host frames to the device (after a checkpoint was loaded into them)."""
+        if self.device is not None:
+            self._device_frames.copy_(self._frames_view)
 
     # State ----------------------------------------------------------------------------
 

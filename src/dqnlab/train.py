@@ -39,7 +39,7 @@ from dqnlab.envs import make_env
 from dqnlab.errors import DqnlabError, ResourceError
 from dqnlab.evaluate import CONFIG_FILE, EvaluationResult, load_run_config, play
 from dqnlab.logs import RunLogger
-from dqnlab.replay import FrameHistory, ReplayMemory
+from dqnlab.replay import FrameHistory, ReplayMemory, check_memory
 
 
 def prepare_run_dir(run_dir: Path, force: bool, config: Config | None = None) -> bool:
@@ -135,6 +135,9 @@ class Learner:
             config.history_length,
             config.batch_size,
             seeds[5],
+            device=replay_device(
+                config, device, self.env.observation_shape, self.env.observation_dtype
+            ),
         )
         self.history = FrameHistory(
             config.history_length, self.env.observation_shape, self.env.observation_dtype
@@ -324,6 +327,35 @@ class StopRequests:
             signal.signal(number, handler)
 
 
+def replay_device(
+    config: Config, device: torch.device, frame_shape: tuple[int, ...], frame_dtype: np.dtype
+) -> torch.device | None:
+    """Where the replay keeps a second copy of its frames to gather minibatches from
+    (`replay_storage`): the training device, or None for host memory alone. "auto" picks
+    a GPU when its free memory holds the frames with 2 GiB to spare; on CPU the host
+    arrays already are the device's memory. "device" on CPU keeps a (useless but
+    faithful) second copy: it runs the GPU's code path where there is no GPU."""
+    if config.replay_storage == "host" or (
+        config.replay_storage == "auto" and device.type != "cuda"
+    ):
+        return None
+    frame_bytes = int(np.prod(frame_shape)) * np.dtype(frame_dtype).itemsize
+    needed = config.replay_capacity * frame_bytes
+    if device.type == "cuda":
+        free, _ = torch.cuda.mem_get_info(device)
+        if needed + 2 * 2**30 > free:
+            if config.replay_storage == "auto":
+                return None
+            raise ResourceError(
+                f'replay_storage = "device" needs {needed / 2**30:.2f} GiB of {device} memory '
+                f"for the frames but {free / 2**30:.2f} GiB is free (2 GiB kept for the "
+                'networks); use "host" or lower replay_capacity'
+            )
+    else:
+        check_memory(needed, "the device copy of the replay frames (replay_storage = device)")
+    return device
+
+
 def check_disk(run_dir: Path, replay: ReplayMemory) -> None:
     """Refuse at start when the disk cannot hold the checkpoints of this replay: at worst
     two full copies (every chunk rewritten while the previous checkpoint is kept)."""
@@ -354,6 +386,7 @@ def train(
     run = RunProgress()
     if resume:
         loaded = store.latest(fingerprint, into=replay.arrays, map_location=device)
+        replay.upload()
         if loaded is not None:
             learner.load_state_dict(loaded.state["learner"])
             run = RunProgress(**loaded.state["run"])
