@@ -73,7 +73,11 @@ class ReplayMemory:
         batch_size: int,
         seed: int,
         device: torch.device | None = None,
+        pin_memory: bool = False,
     ) -> None:
+        """`device`: also keep the frames there and gather minibatches there (see the
+        module's docstring). `pin_memory`: the host minibatch buffer in page-locked memory,
+        for faster copies to a GPU (needs CUDA)."""
         frame_dtype = np.dtype(frame_dtype)
         check_memory(replay_bytes(capacity, frame_shape, frame_dtype), "the replay memory")
         self.capacity = capacity
@@ -93,6 +97,9 @@ class ReplayMemory:
         window = history_length + 1
         self._offsets = np.arange(-history_length + 1, 2, dtype=np.int64)
         self._window = np.zeros((batch_size, window, *frame_shape), dtype=frame_dtype)
+        if pin_memory:
+            pinned = torch.from_numpy(self._window).pin_memory()
+            self._window = pinned.numpy()
         self._slots = np.zeros((batch_size, window), dtype=np.int64)
         self._mask = np.ones((batch_size, window), dtype=np.bool_)
         # torch views of the same memory: index_select copies the windows on every core,

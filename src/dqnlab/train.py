@@ -128,6 +128,9 @@ class Learner:
             config, training=False, seed=seeds[3], max_episode_frames=config.eval_max_episode_frames
         )
         self.agent = build_agent(config, self.env, device, seeds[4])
+        on_device = replay_device(
+            config, device, self.env.observation_shape, self.env.observation_dtype
+        )
         self.replay = replay or ReplayMemory(
             config.replay_capacity,
             self.env.observation_shape,
@@ -135,9 +138,8 @@ class Learner:
             config.history_length,
             config.batch_size,
             seeds[5],
-            device=replay_device(
-                config, device, self.env.observation_shape, self.env.observation_dtype
-            ),
+            device=on_device,
+            pin_memory=device.type == "cuda" and on_device is None,
         )
         self.history = FrameHistory(
             config.history_length, self.env.observation_shape, self.env.observation_dtype
