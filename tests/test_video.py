@@ -284,3 +284,15 @@ def test_gif_fallback_says_why_and_what_it_keeps(pong, monkeypatch, tmp_path):
     assert recording.video_format == "gif"
     assert recording.note == "GIF instead of MP4: no ffmpeg found; 1 frame in 3 kept, 20 frames/s"
     assert [p.suffix for p in recording.paths] == [".gif"] * GAMES
+
+
+def test_recording_again_replaces_the_films_of_earlier_games(tmp_path):
+    """A game filmed again under another score leaves one file per game, this recording's."""
+    config = resolve_config("classic", env=BLINK_ID)
+    stale = tmp_path / video_file_name(BLINK_ID, 1, GAMES, 12345, "gif")
+    stale.write_bytes(b"an older recording")
+    other = tmp_path / "notes.gif"  # not a film of this env's games: kept
+    other.write_bytes(b"kept")
+    recording = record(config, tmp_path, 0, "gif")
+    assert sorted(tmp_path.iterdir()) == sorted([*recording.paths, other])
+    assert not stale.exists()

@@ -307,6 +307,12 @@ class _GameRecorder:
         )
         path = self._out_dir / name
         os.replace(self._partial_path, path)
+        # A film of this game from an earlier recording, under another score, would pass
+        # for one of this recording's games.
+        stem = _game_stem(self._env_name, len(self.paths) + 1, self._games)
+        for older in self._out_dir.glob(f"{stem}-score*.{self._video_format}"):
+            if older != path:
+                older.unlink()
         self.paths.append(path)
         self.scores.append(self._score)
 
@@ -380,9 +386,9 @@ def record_games(
     starts, the `max_episode_frames` cap. An Atari video has one frame per emulator frame
     of its game: the screen after the reset, the no-ops, then every frame of every action
     repeat (1 + the game's frames); a Gymnasium video one per reset and step. A file is
-    written as `*.partial.*` and renamed when its game ends; existing files of the same
-    name are replaced. `video_format`: "auto" (MP4, GIF where MP4 cannot be written),
-    "mp4" or "gif".
+    written as `*.partial.*` and renamed when its game ends; an earlier film of the same
+    game number (whatever its score) is then deleted. `video_format`: "auto" (MP4, GIF
+    where MP4 cannot be written), "mp4" or "gif".
     """
     if episodes <= 0:
         raise ValueError(f"episodes must be positive, got {episodes}")
