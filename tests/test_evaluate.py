@@ -293,3 +293,21 @@ def test_the_worker_module_does_not_import_torch() -> None:
         [sys.executable, "-c", code], capture_output=True, text=True, check=True
     ).stdout
     assert imported.strip() == "[]"
+
+
+def test_a_final_evaluation_that_might_never_end_is_announced() -> None:
+    from dqnlab.cli import _format_warning
+    from dqnlab.evaluate import unbounded_games_warning
+
+    endless = resolve_config("classic", env="tests.test_video:BlinkEnv")  # no TimeLimit
+    message = unbounded_games_warning(endless)
+    assert message is not None and "no step limit" in message
+    capped = dataclasses.replace(endless, final_eval_max_episode_frames=100)
+    assert unbounded_games_warning(capped) is None
+    assert unbounded_games_warning(resolve_config("classic", env="CartPole-v1")) is None
+    assert unbounded_games_warning(resolve_config("nature", env="pong")) is None
+    # Shown by the command as one line of its own.
+    assert _format_warning(message, UserWarning, "/x/dqnlab/evaluate.py", 1) == (
+        f"dqnlab: warning: {message}\n"
+    )
+    assert "UserWarning" in _format_warning("other", UserWarning, "/x/gymnasium/core.py", 1)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import ctypes
 import json
 import sys
+import warnings
 from pathlib import Path
 from typing import Annotated
 
@@ -478,8 +479,19 @@ def _keep_freed_memory() -> None:
         pass
 
 
+def _format_warning(message, category, filename, lineno, line=None) -> str:  # noqa: ANN001
+    """dqnlab's own warnings as one line; others as Python shows them."""
+    if "dqnlab" in Path(filename).parts:
+        return f"dqnlab: warning: {message}\n"
+    return _python_format_warning(message, category, filename, lineno, line)
+
+
+_python_format_warning = warnings.formatwarning
+
+
 def main() -> None:
     """Entry point: a DqnlabError ends the command with one line and exit status 2."""
+    warnings.formatwarning = _format_warning
     _keep_freed_memory()
     try:
         app()

@@ -22,6 +22,7 @@ import json
 import os
 import sys
 import time
+import warnings
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -416,6 +417,9 @@ def load_evaluated_agent(
         path = Path(checkpoint)
     payload = checkpoints.load(path, map_location=device)
     agent, config, env_seed = agent_from_checkpoint(payload, path, seed, device)
+    message = unbounded_games_warning(config)
+    if message is not None:
+        warnings.warn(message, stacklevel=2)
     return agent, config, path, env_seed
 
 
@@ -437,6 +441,26 @@ def agent_from_checkpoint(
     except RuntimeError as error:
         raise DqnlabError(f"checkpoint {path} does not fit its network: {error}") from None
     return agent, config, env_seed
+
+
+def unbounded_games_warning(config: Config) -> str | None:
+    """Why a final evaluation might never end, or None: a Gymnasium environment with no
+    step limit of its own and no `final_eval_max_episode_frames` ends a game only when
+    the environment does, which a policy that balances or dithers forever never reaches."""
+    if is_atari(config.env) or config.final_eval_max_episode_frames > 0:
+        return None
+    env = make_env(config, training=False, seed=0)
+    try:
+        limit = getattr(env, "step_limit", 0)
+    finally:
+        env.close()
+    if limit:
+        return None
+    return (
+        f"{config.env} has no step limit (no TimeLimit) and final_eval_max_episode_frames "
+        "is 0: a game the agent never ends never finishes this evaluation (Ctrl-C stops "
+        "it); train with --set final_eval_max_episode_frames=N to cap games"
+    )
 
 
 def final_evaluation(

@@ -101,6 +101,13 @@ class GymnasiumEnv:
     def game_ended(self) -> bool:
         return self.game_over or self.truncated
 
+    @property
+    def step_limit(self) -> int:
+        """The most steps of an episode: dqnlab's cap, else the env's registered
+        TimeLimit (`max_episode_steps`), else 0 (episodes end only when the env ends them)."""
+        registered = self.env.spec.max_episode_steps if self.env.spec is not None else None
+        return self.max_episode_steps or int(registered or 0)
+
     def _convert(self, observation: np.ndarray) -> np.ndarray:
         array = np.asarray(observation)
         if self._channels_last:
