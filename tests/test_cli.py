@@ -44,6 +44,11 @@ def test_train_and_evaluate_cartpole(tmp_path: Path) -> None:
     assert result["env"] == "CartPole-v1" and result["episodes"] == len(result["scores"]) == 3
     assert result["frames"] == sum(result["scores"])  # CartPole: +1 per step, frame = step
     assert f"{result['mean']:.2f} ± {result['std']:.2f}" in evaluated.stdout
+    # The best network's evaluation is the run's final one, unless one of more games is kept.
+    assert json.loads((run / "final_evaluation.json").read_text()) == result
+    fewer = dqnlab("evaluate", str(run), "--episodes", "2")
+    assert fewer.returncode == 0 and "kept" in fewer.stdout
+    assert json.loads((run / "final_evaluation.json").read_text()) == result
 
 
 def test_train_and_evaluate_an_atari_game(tmp_path: Path) -> None:

@@ -235,14 +235,14 @@ def test_final_evaluation_plays_a_checkpoint_on_several_environments(tmp_path) -
     agent = untrained_agent(config)
     path = tmp_path / "net.pt"
     checkpoints.save(path, {"config": config.to_dict(), "network": agent.online.state_dict()})
-    result, saved, used = final_evaluation(
+    result, network = final_evaluation(
         tmp_path, str(path), 5, seed=2, device=torch.device("cpu"), num_envs=2
     )
-    assert (saved, used) == (config, path)
+    assert (network.config, network.path, network.step) == (config, path, None)
     assert len(result.scores) == 5
     assert all(1 <= score <= 200 for score in result.scores)
     assert sum(result.scores) == result.steps == result.frames
-    again, _, _ = final_evaluation(tmp_path, str(path), 5, 2, torch.device("cpu"), num_envs=2)
+    again, _ = final_evaluation(tmp_path, str(path), 5, 2, torch.device("cpu"), num_envs=2)
     assert again.scores == result.scores
 
 

@@ -24,7 +24,7 @@ def test_classic_preset_solves_cartpole(tmp_path: Path, seed: int) -> None:
     run = tmp_path / f"cartpole-{seed}"
     prepare_run_dir(run, force=False)
     trained = train(config, run, torch.device("cpu"), progress=False, tensorboard=False)
-    result, _, _ = final_evaluation(run, "best", 20, seed=1000 + seed, device=torch.device("cpu"))
+    result, _ = final_evaluation(run, "best", 20, seed=1000 + seed, device=torch.device("cpu"))
     first_solved = next((step for step, mean in trained.evaluations if mean >= 475), None)
     print(f"seed {seed}: first periodic evaluation >= 475 at step {first_solved}; "
           f"final 20 games {result.mean:.1f} ± {result.std:.1f}")  # fmt: skip

@@ -520,3 +520,26 @@ def test_runs_of_the_same_name_get_their_own_q_value_folders(tmp_path: Path) -> 
     taken: set[str] = set()
     names = [_unique_name(tmp_path / parent / "s0", taken) for parent in ("a", "b", "b")]
     assert names == ["s0", "b-s0", "b-s0-2"]
+
+
+def test_the_final_evaluation_names_the_network_it_played(
+    cartpole_copy: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A run still training may save a new best.pt while its old best network plays."""
+    import dqnlab.evaluate
+
+    run = find_runs([cartpole_copy])[0]
+    best, worst = run / "checkpoints" / "best.pt", run / "checkpoints" / "worst.pt"
+    played_step, newer_step = checkpoints.load(best)["step"], checkpoints.load(worst)["step"]
+    assert played_step != newer_step
+    play_games = dqnlab.evaluate.play_games
+
+    def play_then_replace_best(*args: Any, **kwargs: Any) -> Any:
+        result = play_games(*args, **kwargs)
+        shutil.copy(worst, best)  # training wrote a new best network meanwhile
+        return result
+
+    monkeypatch.setattr(dqnlab.evaluate, "play_games", play_then_replace_best)
+    record = best_network_evaluator(torch.device("cpu"), episodes=1)(run)
+    assert record["checkpoint_step"] == played_step
+    assert load_final_evaluation(run)["checkpoint_step"] == played_step

@@ -148,28 +148,46 @@ def evaluate(
     """The Nature final protocol: games of at most 18,000 frames, epsilon 0.05, no-op starts.
 
     Evaluating the run's best network (the default) also saves the result as
-    RUN_DIR/final_evaluation.json, which `dqnlab report` reads. With --video the games
+    RUN_DIR/final_evaluation.json, which `dqnlab report` reads, unless that file holds
+    more games of the same network. With --video the games
     are played one after another on one emulator and filmed from the raw screens (every
     emulator frame, 60 frames/s); without it they are spread over every core (other
     games, the same protocol)."""
     from dqnlab.agent import resolve_device
-    from dqnlab.evaluate import final_evaluation, final_evaluation_record, save_final_evaluation
+    from dqnlab.evaluate import (
+        final_evaluation,
+        final_evaluation_record,
+        load_final_evaluation,
+        save_final_evaluation,
+    )
 
     if video is None:
-        result, config, checkpoint_path = final_evaluation(
+        result, network = final_evaluation(
             run_dir, checkpoint, episodes, seed, resolve_device(device)
         )
     else:
-        result, config, checkpoint_path = _filmed_evaluation(
+        result, network = _filmed_evaluation(
             run_dir, checkpoint, episodes, seed, resolve_device(device), video, video_format
         )
+    config = network.config
     typer.echo(
         f"{config.env}: {result.mean:.2f} ± {result.std:.2f} over {len(result.scores)} games "
-        f"({checkpoint_path}, {result.frames} frames at {result.frames_per_second:.0f} frames/s)"
+        f"({network.path}, {result.frames} frames at {result.frames_per_second:.0f} frames/s)"
     )
-    record = final_evaluation_record(result, config, checkpoint_path, seed)
+    record = final_evaluation_record(result, config, network.path, network.step, seed)
     if checkpoint == "best":
-        save_final_evaluation(run_dir, record)
+        saved = load_final_evaluation(run_dir)
+        if (
+            saved is not None
+            and saved.get("checkpoint_step") == network.step
+            and int(saved["episodes"]) > len(result.scores)
+        ):
+            typer.echo(
+                f"dqnlab: kept {run_dir / 'final_evaluation.json'}: it holds "
+                f"{saved['episodes']} games of this network"
+            )
+        else:
+            typer.echo(f"dqnlab: saved as {save_final_evaluation(run_dir, record)}")
     if json_path:
         json_path.parent.mkdir(parents=True, exist_ok=True)
         json_path.write_text(json.dumps(record, indent=2) + "\n")
@@ -192,12 +210,13 @@ def _filmed_evaluation(  # noqa: ANN202
         raise DqnlabError(f"--video-format {video_format!r}: choose auto, mp4 or gif")
     if episodes is not None and episodes <= 0:
         raise DqnlabError(f"--episodes {episodes} must be positive")
-    agent, config, path, env_seed = load_evaluated_agent(run_dir, checkpoint, seed, device)
+    network = load_evaluated_agent(run_dir, checkpoint, seed, device)
+    config = network.config
     recording = record_games(
-        agent,
+        network.agent,
         config,
         episodes if episodes is not None else config.final_eval_episodes,
-        env_seed,
+        network.env_seed,
         out_dir,
         epsilon=config.eval_epsilon,
         max_episode_frames=config.final_eval_max_episode_frames,
@@ -207,7 +226,7 @@ def _filmed_evaluation(  # noqa: ANN202
         typer.echo(f"dqnlab: wrote {file}")
     if recording.note:
         typer.echo(f"dqnlab: {recording.video_format.upper()}: {recording.note}")
-    return recording.result, config, path
+    return recording.result, network
 
 
 @app.command()

@@ -363,15 +363,20 @@ FINAL_EVALUATION_FILE = "final_evaluation.json"
 
 
 def final_evaluation_record(
-    result: EvaluationResult, config: Config, checkpoint_path: Path, seed: int
+    result: EvaluationResult,
+    config: Config,
+    checkpoint_path: Path,
+    checkpoint_step: int | None,
+    seed: int,
 ) -> dict[str, Any]:
     """The result of a final evaluation as `dqnlab evaluate --json` and
-    `final_evaluation.json` hold it (std over games with ddof 0, as numpy's default)."""
-    payload = checkpoints.load(checkpoint_path)
+    `final_evaluation.json` hold it (std over games with ddof 0, as numpy's default).
+    `checkpoint_step`: the training step of the network played, as its file said when
+    it was loaded (a running training may have replaced the file since)."""
     return {
         "env": config.env,
         "checkpoint": str(checkpoint_path),
-        "checkpoint_step": payload.get("step"),
+        "checkpoint_step": checkpoint_step,
         "seed": seed,
         "episodes": len(result.scores),
         "epsilon": config.eval_epsilon,
@@ -404,9 +409,20 @@ def load_final_evaluation(run_dir: Path) -> dict[str, Any] | None:
         raise DqnlabError(f"{path} is not valid JSON: {error}") from None
 
 
+@dataclass
+class EvaluatedNetwork:
+    """A saved network ready to play, and where it came from."""
+
+    agent: Agent
+    config: Config  # the configuration it was trained with
+    path: Path
+    step: int | None  # the training step at which it was saved
+    env_seed: int  # seeds the environments it plays (child 0 of the evaluation's seed)
+
+
 def load_evaluated_agent(
     run_dir: Path, checkpoint: str, seed: int, device: torch.device
-) -> tuple[Agent, Config, Path, int]:
+) -> EvaluatedNetwork:
     """The network `final_evaluation` plays: the agent built from the configuration saved
     in the checkpoint ("best", "last" or a file path), its weights loaded, and the seed
     of the evaluation's environments (child 0 of `seed`; child 1 seeds the agent)."""
@@ -420,7 +436,8 @@ def load_evaluated_agent(
     message = unbounded_games_warning(config)
     if message is not None:
         warnings.warn(message, stacklevel=2)
-    return agent, config, path, env_seed
+    step = payload.get("step")
+    return EvaluatedNetwork(agent, config, path, int(step) if step is not None else None, env_seed)
 
 
 def agent_from_checkpoint(
@@ -471,7 +488,7 @@ def final_evaluation(
     device: torch.device,
     *,
     num_envs: int | None = None,
-) -> tuple[EvaluationResult, Config, Path]:
+) -> tuple[EvaluationResult, EvaluatedNetwork]:
     """Nature's final protocol on a run's network: whole games of at most
     `final_eval_max_episode_frames`, at `eval_epsilon`, with random no-op starts.
 
@@ -484,15 +501,16 @@ def final_evaluation(
         raise DqnlabError(f"--episodes {episodes} must be positive")
     if num_envs is not None and num_envs <= 0:
         raise DqnlabError(f"num_envs {num_envs} must be positive")
-    agent, config, path, env_seed = load_evaluated_agent(run_dir, checkpoint, seed, device)
+    network = load_evaluated_agent(run_dir, checkpoint, seed, device)
+    config = network.config
     count = episodes if episodes is not None else config.final_eval_episodes
     result = play_games(
-        agent,
+        network.agent,
         config,
         count,
-        env_seed,
+        network.env_seed,
         epsilon=config.eval_epsilon,
         max_episode_frames=config.final_eval_max_episode_frames,
         num_envs=num_envs,
     )
-    return result, config, path
+    return result, network

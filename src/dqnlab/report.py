@@ -199,8 +199,8 @@ def best_network_evaluator(
     final_evaluation.json, as `dqnlab evaluate RUN_DIR` does, so it is played once."""
 
     def evaluate(run_dir: Path) -> dict[str, Any]:
-        result, config, path = final_evaluation(run_dir, "best", episodes, seed, device)
-        record = final_evaluation_record(result, config, path, seed)
+        result, network = final_evaluation(run_dir, "best", episodes, seed, device)
+        record = final_evaluation_record(result, network.config, network.path, network.step, seed)
         save_final_evaluation(run_dir, record)
         return record
 
