@@ -543,3 +543,38 @@ def test_the_final_evaluation_names_the_network_it_played(
     record = best_network_evaluator(torch.device("cpu"), episodes=1)(run)
     assert record["checkpoint_step"] == played_step
     assert load_final_evaluation(run)["checkpoint_step"] == played_step
+
+
+def test_no_frames_axis_when_configurations_repeat_actions_differently() -> None:
+    from dqnlab.report import Group, PeriodicEvaluation, learning_curves
+
+    def group(repeat: int, *runs_frames: int) -> Group:
+        config = resolve_config("nature", env="pong", action_repeat_frames=repeat)
+        runs = [
+            RunResults(Path(f"r{repeat}-{n}"), config, [PeriodicEvaluation(100, f, 0.0, 1)], None)
+            for n, f in enumerate(runs_frames)
+        ]
+        return Group("pong", f"action_repeat_frames={repeat}", {}, runs)
+
+    (agreeing,) = learning_curves([group(4, 410, 420)])
+    assert agreeing.frames_per_step == pytest.approx(4.15)
+    (differing,) = learning_curves([group(2, 210), group(4, 410)])
+    assert differing.frames_per_step is None
+
+
+def test_a_report_written_again_leaves_only_its_own_files(
+    atari_runs: dict[str, Path], tmp_path: Path
+) -> None:
+    out = tmp_path / "out"
+    first = write_report(
+        list(atari_runs.values()), out, evaluate_missing=must_not_evaluate, inspect_frames=1
+    )
+    assert (out / "summary.csv").is_file() and (out / "curves-pong.png").is_file()
+    assert len(first.inspections) == 3
+    (out / "notes.txt").write_text("mine")  # not a report's file: kept
+    write_report([atari_runs["breakout-s0"]], out, evaluate_missing=must_not_evaluate)
+    assert sorted(p.name for p in out.iterdir()) == [
+        "curves-breakout.png", "curves-breakout.svg", "notes.txt", "q-values", "results.csv",
+        "results.md",
+    ]  # fmt: skip
+    assert list((out / "q-values").iterdir()) == []

@@ -23,6 +23,7 @@ from __future__ import annotations
 import csv
 import io
 import re
+import shutil
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from importlib import resources
@@ -440,7 +441,8 @@ def learning_curves(groups: Sequence[Group]) -> list[Curve]:
     The top axis converts steps to frames with one factor per game, the frames of all its
     evaluations over their steps: an Atari step is `action_repeat_frames` frames, plus
     the no-op frames of each episode start and minus the frames a game over cuts short,
-    so the factor is measured rather than assumed."""
+    so the factor is measured rather than assumed. No top axis where a frame is a step,
+    or where the configurations' factors differ by more than 5%."""
     curves: dict[str, Curve] = {}
     for group in groups:
         runs = [run for run in group.runs if run.evaluations]
@@ -464,16 +466,21 @@ def learning_curves(groups: Sequence[Group]) -> list[Curve]:
         )
         curves.setdefault(group.env, Curve(group.env, [], None)).series.append(series)
     for curve in curves.values():
-        points = [
-            point
+        points = {  # each configuration's evaluations
+            group.label: [p for run in group.runs for p in run.evaluations]
             for group in groups
             if group.env == curve.game
-            for run in group.runs
-            for point in run.evaluations
-        ]
-        if any(point.frames != point.step for point in points):
-            curve.frames_per_step = sum(p.frames for p in points) / sum(p.step for p in points)
+        }
+        ratios = [_frames_per_step(p) for p in points.values() if p]
+        # One top axis fits every line only if the configurations agree (they do not when
+        # they differ in action_repeat_frames, say): otherwise steps alone.
+        if any(ratio != 1.0 for ratio in ratios) and max(ratios) <= 1.05 * min(ratios):
+            curve.frames_per_step = _frames_per_step([p for ps in points.values() for p in ps])
     return list(curves.values())
+
+
+def _frames_per_step(points: Sequence[PeriodicEvaluation]) -> float:
+    return sum(p.frames for p in points) / sum(p.step for p in points)
 
 
 def curve_figure(curve: Curve) -> Figure:
@@ -619,9 +626,13 @@ def write_report(
     and curves-GAME.png/.svg into `out_dir`. `evaluate_missing`: see
     `best_network_evaluator`; `echo` is told of each evaluation before it starts. With
     `inspect_frames` > 0, also the Q-values of each run's best and worst networks on that
-    many frames (`inspect_report_runs`), into `out_dir`/q-values/RUN/."""
+    many frames (`inspect_report_runs`), into `out_dir`/q-values/RUN/. What an earlier
+    report left in `out_dir` and this one does not write again (curves of other games,
+    a summary.csv, Q-values of other runs) is removed: every file is of this report."""
     report = build_report(run_dirs, evaluate_missing=evaluate_missing, echo=echo)
     out_dir.mkdir(parents=True, exist_ok=True)
+    earlier = [*out_dir.glob("curves-*.png"), *out_dir.glob("curves-*.svg"), out_dir / SUMMARY_CSV]
+    earlier_inspections = [p for p in (out_dir / Q_VALUES_DIR).glob("*") if p.is_dir()]
     taken: set[str] = set()
     for curve in report.curves:
         figure = curve_figure(curve)
@@ -638,11 +649,19 @@ def write_report(
         path = out_dir / SUMMARY_CSV
         _write_csv(path, [_summary_record(row) for row in report.summary], SUMMARY_COLUMNS)
         report.files.append(path)
+    for old in earlier:
+        if old not in report.files:
+            old.unlink(missing_ok=True)
+    path = out_dir / RESULTS_MD
+    path.write_text(format_markdown(report, out_dir))  # complete before the slow part
+    report.files.append(path)
     if inspect_frames > 0:
         inspect_report_runs(report, out_dir / Q_VALUES_DIR, inspect_frames, device, echo)
-    path = out_dir / RESULTS_MD
-    path.write_text(format_markdown(report, out_dir))
-    report.files.append(path)
+        path.write_text(format_markdown(report, out_dir))
+    written = {item.out_dir for item in report.inspections}
+    for old_dir in earlier_inspections:
+        if old_dir not in written:
+            shutil.rmtree(old_dir)
     return report
 
 
