@@ -155,6 +155,7 @@ def test_score_and_file_names() -> None:
     assert format_score(-21.0) == "-21"
     assert format_score(12.5) == "12.5"
     assert format_score(400.0) == "400"
+    assert format_score(0.1 + 0.2) == "0.3" and format_score(1 / 3) == "0.33"
     assert video_file_name("pong", 1, 30, -21.0, "mp4") == "pong-game01-score-21.mp4"
     assert video_file_name("ALE/Pong-v5", 7, 150, 3.0, "gif") == "ALE_Pong-v5-game007-score3.gif"
     assert (
@@ -286,13 +287,17 @@ def test_gif_fallback_says_why_and_what_it_keeps(pong, monkeypatch, tmp_path):
     assert [p.suffix for p in recording.paths] == [".gif"] * GAMES
 
 
-def test_recording_again_replaces_the_films_of_earlier_games(tmp_path):
-    """A game filmed again under another score leaves one file per game, this recording's."""
+def test_recording_again_replaces_the_films_of_an_earlier_recording(tmp_path):
+    """Films of the same environment from before (other scores, game counts or format)
+    would pass for this recording's: only this recording's are left."""
     config = resolve_config("classic", env=BLINK_ID)
-    stale = tmp_path / video_file_name(BLINK_ID, 1, GAMES, 12345, "gif")
-    stale.write_bytes(b"an older recording")
-    other = tmp_path / "notes.gif"  # not a film of this env's games: kept
-    other.write_bytes(b"kept")
+    stale = [
+        tmp_path / video_file_name(BLINK_ID, 1, GAMES, 12345, "gif"),
+        tmp_path / video_file_name(BLINK_ID, 7, 100, 2.5, "mp4"),
+        tmp_path / "DqnlabVideoTest_Blink-v0-game03.partial.gif",
+    ]
+    kept = [tmp_path / "notes.gif", tmp_path / video_file_name("pong", 1, 1, 3, "mp4")]
+    for path in stale + kept:
+        path.write_bytes(b"an older file")
     recording = record(config, tmp_path, 0, "gif")
-    assert sorted(tmp_path.iterdir()) == sorted([*recording.paths, other])
-    assert not stale.exists()
+    assert sorted(tmp_path.iterdir()) == sorted([*recording.paths, *kept])

@@ -94,8 +94,10 @@ def choose_video_format(video_format: str = "auto") -> tuple[str, str]:
 
 
 def format_score(score: float) -> str:
-    """A score as a file name shows it: 21, -21, 12.5 (no trailing .0)."""
-    return str(int(score)) if float(score).is_integer() else repr(float(score))
+    """A score as a file name shows it: 21, -21, 12.5, 0.33 (no trailing .0, at most
+    two decimals)."""
+    text = f"{float(score):.2f}".rstrip("0").rstrip(".")
+    return "0" if text == "-0" else text
 
 
 def video_file_name(env_name: str, game: int, games: int, score: float, extension: str) -> str:
@@ -105,8 +107,20 @@ def video_file_name(env_name: str, game: int, games: int, score: float, extensio
 
 
 def _game_stem(env_name: str, game: int, games: int) -> str:
-    safe_name = re.sub(r"[^A-Za-z0-9._-]+", "_", env_name).strip("._") or "env"
-    return f"{safe_name}-game{game:0{max(2, len(str(games)))}d}"
+    return f"{_safe_name(env_name)}-game{game:0{max(2, len(str(games)))}d}"
+
+
+def _safe_name(env_name: str) -> str:
+    return re.sub(r"[^A-Za-z0-9._-]+", "_", env_name).strip("._") or "env"
+
+
+def _remove_earlier_films(out_dir: Path, env_name: str) -> None:
+    """Films of this environment from an earlier recording into `out_dir`: with other
+    games or scores in their names, they would pass for this recording's."""
+    pattern = re.compile(rf"{re.escape(_safe_name(env_name))}-game\d+-score.*\.(mp4|gif)")
+    for path in out_dir.glob(f"{_safe_name(env_name)}-game*"):
+        if pattern.fullmatch(path.name) or ".partial." in path.name:
+            path.unlink()
 
 
 # Encoders: append(frame) with an RGB uint8 (H, W, 3) array, close() ---------------------
@@ -152,7 +166,7 @@ class _GifWriter:
     def __init__(self, path: Path, fps: float, stride: int) -> None:
         self._file = path.open("wb")
         self._stride = stride
-        self._delay_centiseconds = max(2, round(100 * stride / fps))
+        self._delay_centiseconds = gif_delay_centiseconds(fps, stride)
         self._count = 0
         self._previous: np.ndarray | None = None
 
@@ -307,12 +321,6 @@ class _GameRecorder:
         )
         path = self._out_dir / name
         os.replace(self._partial_path, path)
-        # A film of this game from an earlier recording, under another score, would pass
-        # for one of this recording's games.
-        stem = _game_stem(self._env_name, len(self.paths) + 1, self._games)
-        for older in self._out_dir.glob(f"{stem}-score*.{self._video_format}"):
-            if older != path:
-                older.unlink()
         self.paths.append(path)
         self.scores.append(self._score)
 
@@ -363,6 +371,12 @@ def _filming_fps(env: AtariEnv | GymnasiumEnv, env_name: str) -> float:
     return float(env.env.metadata.get("render_fps") or DEFAULT_RENDER_FPS)
 
 
+def gif_delay_centiseconds(fps: float, stride: int) -> int:
+    """A GIF frame's delay: whole hundredths of a second, 2 at least (browsers show
+    shorter delays as 10)."""
+    return max(2, round(100 * stride / fps))
+
+
 def _gif_stride(fps: float) -> int:
     return max(1, math.ceil(fps / GIF_MAX_FPS))
 
@@ -386,8 +400,8 @@ def record_games(
     starts, the `max_episode_frames` cap. An Atari video has one frame per emulator frame
     of its game: the screen after the reset, the no-ops, then every frame of every action
     repeat (1 + the game's frames); a Gymnasium video one per reset and step. A file is
-    written as `*.partial.*` and renamed when its game ends; an earlier film of the same
-    game number (whatever its score) is then deleted. `video_format`: "auto" (MP4, GIF
+    written as `*.partial.*` and renamed when its game ends; films of this environment
+    from an earlier recording into `out_dir` are deleted first. `video_format`: "auto" (MP4, GIF
     where MP4 cannot be written), "mp4" or "gif".
     """
     if episodes <= 0:
@@ -412,9 +426,11 @@ def record_games(
         fps = _filming_fps(env, config.env)
         if chosen_format == "gif":
             stride = _gif_stride(fps)
-            kept = f"1 frame in {stride} kept, {fps / stride:g} frames/s"
+            shown = 100 / gif_delay_centiseconds(fps, stride)
+            kept = f"1 frame in {stride} kept, {shown:.3g} frames/s"
             note = f"{note}; {kept}" if note else kept
         out_dir.mkdir(parents=True, exist_ok=True)
+        _remove_earlier_films(out_dir, config.env)
         scale = ATARI_MP4_SCALE if isinstance(env, AtariEnv) else 1
         recorder = _GameRecorder(env, out_dir, config.env, episodes, chosen_format, fps, scale)
         try:
@@ -425,5 +441,6 @@ def record_games(
         env.close()
     if recorder.scores != result.scores:  # the names must carry the scores play counted
         raise RuntimeError(f"filmed scores {recorder.scores} != played {result.scores}")
-    file_fps = fps / _gif_stride(fps) if chosen_format == "gif" else fps
+    gif_fps = 100 / gif_delay_centiseconds(fps, _gif_stride(fps))
+    file_fps = gif_fps if chosen_format == "gif" else fps
     return Recording(result, recorder.paths, chosen_format, file_fps, note)
