@@ -351,6 +351,7 @@ def test_parse_checkpoints() -> None:
     assert parse_checkpoints("best, worst") == ["best", "worst"]
     assert parse_checkpoints("250000,500000") == ["250000", "500000"]
     assert parse_checkpoints("best,300,best") == ["best", "300"]
+    assert parse_checkpoints("600,0600") == ["600"]  # one network, not twice
     for bad in ("", "best,last", "-5"):
         with pytest.raises(DqnlabError):
             parse_checkpoints(bad)

@@ -112,7 +112,13 @@ def _run(config, run_dir: Path, device, progress: bool, resume: bool) -> None:  
         )
         sys.exit(130 if result.interrupted == "SIGINT" else 143)
     typer.echo(
-        f"dqnlab: {result.steps} steps, {result.frames} frames in {result.seconds:.0f} s "
+        f"dqnlab: {result.steps} steps, {result.frames} frames"
+        + (
+            f" ({result.session_frames} since the resume)"
+            if result.session_frames != result.frames
+            else ""
+        )
+        + f" in {result.seconds:.0f} s "
         f"({result.frames_per_second:.0f} frames/s overall, {result.learning_frames_per_second:.0f} "
         f"once learning); "
         + (
@@ -377,6 +383,8 @@ def report(
     q-values/RUN/ (a figure per frame, overview.png, q_values.csv)."""
     if frames < 0:
         raise DqnlabError(f"--frames {frames} must be 0 or more")
+    if episodes is not None and episodes <= 0:
+        raise DqnlabError(f"--episodes {episodes} must be positive")
     if out is None:
         one_sweep = len(run_dirs) == 1 and not (run_dirs[0] / "config.toml").is_file()
         out = run_dirs[0] / "report" if one_sweep else Path("report")

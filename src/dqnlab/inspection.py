@@ -123,7 +123,7 @@ def parse_checkpoints(text: str) -> list[str]:
 
 def _checked_names(checkpoints: Iterable[str | int]) -> list[str]:
     """The names in order, each once; an error for one that is not best, worst or a step."""
-    names = list(dict.fromkeys(str(c) for c in checkpoints))
+    names = list(dict.fromkeys(str(int(c)) if str(c).isdigit() else str(c) for c in checkpoints))
     if not names:
         raise DqnlabError("--checkpoints is empty; give best, worst or evaluation steps")
     for name in names:

@@ -88,17 +88,19 @@ def prepare_run_dir(run_dir: Path, force: bool, config: Config | None = None) ->
 
 @dataclass
 class TrainResult:
-    steps: int
-    frames: int
-    seconds: float
+    steps: int  # the run's, from its start (also before a resume)
+    frames: int  # the run's training frames, from its start
+    seconds: float  # this session's (since the resume, if one)
     learning_frames_per_second: float  # after replay start, evaluations included
     best_eval_mean: float
     evaluations: list[tuple[int, float]]
+    session_frames: int  # training frames of this session
     interrupted: str | None = None  # the signal that stopped the run early
 
     @property
     def frames_per_second(self) -> float:
-        return self.frames / self.seconds if self.seconds > 0 else 0.0
+        """This session's training frames over its time."""
+        return self.session_frames / self.seconds if self.seconds > 0 else 0.0
 
 
 TIMED_PARTS = ("env", "act", "store", "sample", "update")
@@ -128,8 +130,10 @@ class Learner:
             config, training=False, seed=seeds[3], max_episode_frames=config.eval_max_episode_frames
         )
         self.agent = build_agent(config, self.env, device, seeds[4])
-        on_device = replay_device(
-            config, device, self.env.observation_shape, self.env.observation_dtype
+        on_device = (
+            replay_device(config, device, self.env.observation_shape, self.env.observation_dtype)
+            if replay is None
+            else replay.device
         )
         self.replay = replay or ReplayMemory(
             config.replay_capacity,
@@ -354,7 +358,10 @@ def replay_device(
                 'networks); use "host" or lower replay_capacity'
             )
     else:
-        check_memory(needed, "the device copy of the replay frames (replay_storage = device)")
+        # The host arrays are allocated next, beside this copy.
+        check_memory(
+            2 * needed, "the replay with a second copy of its frames (replay_storage = device)"
+        )
     return device
 
 
@@ -429,7 +436,7 @@ def train(
         saved_time = time.monotonic()
 
     recent_scores: deque[float] = deque(run.recent_scores, maxlen=20)
-    start = time.perf_counter()
+    start, start_frames = time.perf_counter(), env.frames
     first_step = learner.steps + 1
     bar = tqdm(
         total=config.total_steps, initial=learner.steps, disable=not progress, unit="step",
@@ -548,6 +555,7 @@ def train(
         learning_fps,
         run.best_mean,
         run.evaluations,
+        env.frames - start_frames,
         interrupted,
     )
 
