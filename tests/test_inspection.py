@@ -257,6 +257,16 @@ def test_networks_by_step_on_saved_observations(breakout: Inspection, tmp_path: 
     assert again.screens is not None and breakout.screens is not None  # screens.npy beside
     np.testing.assert_array_equal(again.screens, breakout.screens)
     assert again.game_steps is None
+    # Inputs saved under another name are not an inspection's: a screens.npy beside them
+    # shows other frames.
+    saved = tmp_path / "saved"
+    saved.mkdir()
+    shutil.copy(breakout.observations_path, saved / "mine.npy")
+    shutil.copy(breakout.observations_path.with_name("screens.npy"), saved / "screens.npy")
+    other = inspect_run(
+        run, tmp_path / "other", checkpoints=["best"], observations=saved / "mine.npy", device=CPU
+    )
+    assert other.screens is None
 
 
 def test_missing_step_lists_the_kept_steps(breakout_run: Path, tmp_path: Path) -> None:

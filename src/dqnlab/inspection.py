@@ -394,8 +394,10 @@ def inspect_run(
 
 
 def _screens_beside(observations: Path, count: int) -> np.ndarray | None:
+    """The screens an earlier inspection saved with these inputs (its observations.npy
+    and screens.npy), None for inputs saved otherwise."""
     path = observations.with_name(SCREENS_FILE)
-    if not path.is_file():
+    if observations.name != OBSERVATIONS_FILE or not path.is_file():
         return None
     try:
         screens = np.load(path, allow_pickle=False)
