@@ -11,10 +11,8 @@ import imageio.v2 as imageio
 import imageio.v3 as iio
 import numpy as np
 import pytest
-import torch
 
 from dqnlab import video
-from dqnlab.agent import Agent, build_agent
 from dqnlab.config import Config, derive_seeds, resolve_config
 from dqnlab.envs import make_env
 from dqnlab.errors import DqnlabError
@@ -27,6 +25,7 @@ from dqnlab.video import (
     record_games,
     video_file_name,
 )
+from tests.test_evaluate import untrained_agent
 
 EPSILON = 0.05
 SEED = 3
@@ -96,15 +95,6 @@ if BLINK_ID not in gym.registry:
 @pytest.fixture(scope="module")
 def pong() -> Config:
     return resolve_config("nature", env="pong")
-
-
-def untrained_agent(config: Config) -> Agent:
-    """The same untrained network and acting stream at every call."""
-    torch.manual_seed(0)
-    env = make_env(config, training=False, seed=0)
-    agent = build_agent(config, env, torch.device("cpu"), 7)
-    env.close()
-    return agent
 
 
 def reference_play(config: Config, cap: int) -> tuple[list[float], list[np.ndarray]]:

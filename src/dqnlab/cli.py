@@ -386,7 +386,9 @@ def report(
     if episodes is not None and episodes <= 0:
         raise DqnlabError(f"--episodes {episodes} must be positive")
     if out is None:
-        one_sweep = len(run_dirs) == 1 and not (run_dirs[0] / "config.toml").is_file()
+        from dqnlab.evaluate import CONFIG_FILE
+
+        one_sweep = len(run_dirs) == 1 and not (run_dirs[0] / CONFIG_FILE).is_file()
         out = run_dirs[0] / "report" if one_sweep else Path("report")
     _report(run_dirs, out, episodes, device, frames)
 

@@ -125,6 +125,10 @@ class ReplayMemory:
                 self._window.shape, dtype=self._frames_view.dtype, device=device
             )
             self._device_slots = torch.zeros(self._slots.size, dtype=torch.int64, device=device)
+            # Kept frames of each window, shaped to broadcast over a frame.
+            self._device_mask = torch.zeros(
+                (batch_size, window, *[1] * len(frame_shape)), dtype=torch.uint8, device=device
+            )
             self._batch = dataclasses.replace(
                 self._batch,
                 observations=self._device_window[:, :history_length],
@@ -212,7 +216,8 @@ class ReplayMemory:
             frames = self._device_window.view(-1, *self.frame_shape)
             torch.index_select(self._device_frames, 0, self._device_slots, out=frames)
             if not mask.all():
-                self._device_window[torch.from_numpy(~mask).to(self.device)] = 0
+                self._device_mask.view(mask.shape).copy_(torch.from_numpy(mask))
+                self._device_window.mul_(self._device_mask)
         batch = self._batch
         batch.actions[:] = self.actions[indices]
         batch.rewards[:] = self.rewards[indices]
