@@ -6,10 +6,10 @@ from pathlib import Path
 
 import pytest
 
-from dqnlab import checkpoints
+from dqnlab import rundir
 from dqnlab.ablate import Variation, check_sweep_dir, parse_variation, plan_sweep, run_sweep
 from dqnlab.errors import ConfigError, DqnlabError
-from dqnlab.evaluate import load_run_config
+from dqnlab.rundir import load_run_config
 
 TINY = {
     "replay_start_steps": 100,
@@ -90,7 +90,7 @@ def test_sweep_trains_each_run_then_skips_finished_ones(tmp_path: Path) -> None:
     assert [run.status for run in sweep.runs] == ["ok", "ok"], lines
     for run in sweep.runs:
         assert load_run_config(run.run_dir) == run.config
-        assert checkpoints.load(run.run_dir / "checkpoints" / "last.pt")["step"] == 300
+        assert rundir.load_network(run.run_dir / "checkpoints" / "last.pt")["step"] == 300
         assert (run.run_dir / "evaluations.csv").read_text().count("\n") == 3  # header + 2
     assert {load_run_config(r.run_dir).life_loss_terminal for r in sweep.runs} == {True, False}
 

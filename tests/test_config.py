@@ -5,15 +5,21 @@ from __future__ import annotations
 import dataclasses
 
 import pytest
+import tomllib
 
 from dqnlab.config import (
+    RESUMABLE_CHANGES,
     Config,
+    config_fingerprint,
     config_from_dict,
     config_to_toml,
+    differing_settings,
     load_preset,
     parse_overrides,
     preset_names,
     resolve_config,
+    setting_text,
+    toml_value,
 )
 from dqnlab.errors import ConfigError
 
@@ -108,3 +114,24 @@ def test_a_preset_file_with_bad_toml(tmp_path) -> None:
     path.write_text("learning_rate = = 1\n")
     with pytest.raises(ConfigError, match="is not valid TOML"):
         load_preset(str(path))
+
+
+def test_fingerprint_ignores_only_the_settings_a_resume_may_change() -> None:
+    config = Config(env="pong")
+    for name, value in (("total_steps", 10), ("checkpoints_kept", 5), ("replay_storage", "host")):
+        assert name in RESUMABLE_CHANGES
+        assert config_fingerprint(dataclasses.replace(config, **{name: value})) == (
+            config_fingerprint(config)
+        )
+    changed = dataclasses.replace(config, discount=0.9, total_steps=10)
+    assert config_fingerprint(changed) != config_fingerprint(config)
+    assert differing_settings(config, changed) == ["discount"]
+    assert differing_settings(config, dataclasses.replace(config, total_steps=10)) == []
+
+
+def test_toml_values_read_back_and_labels_leave_strings_bare() -> None:
+    for value in (True, 3, 0.00025, 5e-05, 'deep\\mind "rms"', (64, 64)):
+        read = tomllib.loads(f"value = {toml_value(value)}")["value"]
+        assert read == (list(value) if isinstance(value, tuple) else value)
+    assert setting_text("deepmind_rmsprop") == "deepmind_rmsprop"
+    assert setting_text(False) == "false" and setting_text((64, 64)) == "[64, 64]"

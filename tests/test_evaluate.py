@@ -11,7 +11,7 @@ import textwrap
 import pytest
 import torch
 
-from dqnlab import checkpoints
+from dqnlab import rundir
 from dqnlab.agent import Agent, build_agent
 from dqnlab.config import Config, derive_seeds, resolve_config
 from dqnlab.envs import Environment, make_env
@@ -234,7 +234,10 @@ def test_final_evaluation_plays_a_checkpoint_on_several_environments(tmp_path) -
     config = resolve_config("classic", env="CartPole-v1", final_eval_max_episode_frames=200)
     agent = untrained_agent(config)
     path = tmp_path / "net.pt"
-    checkpoints.save(path, {"config": config.to_dict(), "network": agent.online.state_dict()})
+    stored = {"input_shape": agent.input_shape, "action_names": agent.action_names}
+    rundir.save_network(
+        path, {"config": config.to_dict(), **stored, "network": agent.online.state_dict()}
+    )
     result, network = final_evaluation(
         tmp_path, str(path), 5, seed=2, device=torch.device("cpu"), num_envs=2
     )

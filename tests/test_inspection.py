@@ -14,8 +14,7 @@ import pytest
 import torch
 from matplotlib.patches import Rectangle
 
-from dqnlab import checkpoints
-from dqnlab.checkpoints import eval_network_path
+from dqnlab import rundir
 from dqnlab.config import Config, config_from_dict, config_to_toml, derive_seeds, resolve_config
 from dqnlab.envs import make_env
 from dqnlab.envs.atari import preprocess
@@ -30,7 +29,8 @@ from dqnlab.inspection import (
 )
 from dqnlab.logs import read_csv
 from dqnlab.networks import build_network
-from dqnlab.train import prepare_run_dir, train
+from dqnlab.rundir import eval_network_path, prepare_run_dir
+from dqnlab.train import train
 
 FRAMES = 3
 MAX_GAME_STEPS = 200  # enough for the test, cheap to play twice
@@ -91,7 +91,7 @@ def cartpole(cartpole_run: Path) -> Inspection:
 
 def _direct_q_values(path: Path, observations: np.ndarray) -> np.ndarray:
     """The saved network rebuilt from its checkpoint alone, one forward pass in eval mode."""
-    payload = checkpoints.load(path)
+    payload = rundir.load_network(path)
     config = config_from_dict(payload["config"])
     is_image = observations.dtype == np.uint8 and observations.ndim >= 4
     network = build_network(
@@ -282,7 +282,7 @@ def test_missing_networks_are_explained(cartpole_run: Path, tmp_path: Path) -> N
     run = tmp_path / "run"
     (run / "checkpoints").mkdir(parents=True)
     shutil.copy(cartpole_run / "checkpoints" / "best.pt", run / "checkpoints" / "best.pt")
-    config = config_from_dict(checkpoints.load(run / "checkpoints" / "best.pt")["config"])
+    config = config_from_dict(rundir.load_network(run / "checkpoints" / "best.pt")["config"])
     kept = dataclasses.replace(config, eval_networks_kept="best_and_worst")
     (run / "config.toml").write_text(config_to_toml(kept))
     with pytest.raises(DqnlabError, match=r"no worst network.*total_steps / 4 = 200"):
@@ -324,7 +324,7 @@ def test_cartpole_frames_are_those_of_the_best_networks_first_game(cartpole: Ins
     """Replayed by hand: the evaluation environment seeded as inspect_run seeds it, the
     best network acting greedily (the classic preset evaluates at epsilon 0)."""
     best = cartpole.networks[0]
-    config = config_from_dict(checkpoints.load(best.path)["config"])
+    config = config_from_dict(rundir.load_network(best.path)["config"])
     assert config.eval_epsilon == 0.0 and config.history_length == 1
     env = make_env(config, training=False, seed=derive_seeds(1, 2)[0])
     observation = env.reset(new_game=True).copy()

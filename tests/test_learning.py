@@ -13,7 +13,8 @@ import torch
 
 from dqnlab.config import resolve_config
 from dqnlab.evaluate import final_evaluation
-from dqnlab.train import prepare_run_dir, train
+from dqnlab.rundir import prepare_run_dir
+from dqnlab.train import train
 
 
 @pytest.mark.slow

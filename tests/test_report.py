@@ -17,10 +17,9 @@ import pytest
 import torch
 from matplotlib.collections import PolyCollection
 
-from dqnlab import checkpoints
+from dqnlab import rundir
 from dqnlab.config import resolve_config
 from dqnlab.errors import DqnlabError
-from dqnlab.evaluate import load_final_evaluation, save_final_evaluation
 from dqnlab.logs import read_csv
 from dqnlab.report import (
     ALL_EQUAL,
@@ -36,7 +35,8 @@ from dqnlab.report import (
     load_reference_scores,
     write_report,
 )
-from dqnlab.train import prepare_run_dir, train
+from dqnlab.rundir import load_final_evaluation, prepare_run_dir, save_final_evaluation
+from dqnlab.train import train
 
 # Rows of data/atari_scores.csv: random, dqn_zoo human, Nature human, Nature DQN (± s.d.).
 PONG = {"random": -20.7, "human": 14.6, "human_nature": 9.3, "dqn": 18.9, "dqn_std": 1.3}
@@ -84,7 +84,7 @@ def write_final_evaluation(run_dir: Path, scores: list[float]) -> None:
         {
             "env": run_dir.name,
             "checkpoint": str(best),
-            "checkpoint_step": checkpoints.load(best)["step"],
+            "checkpoint_step": rundir.load_network(best)["step"],
             "seed": 12345,
             "episodes": len(scores),
             "epsilon": 0.05,
@@ -530,7 +530,7 @@ def test_the_final_evaluation_names_the_network_it_played(
 
     run = find_runs([cartpole_copy])[0]
     best, worst = run / "checkpoints" / "best.pt", run / "checkpoints" / "worst.pt"
-    played_step, newer_step = checkpoints.load(best)["step"], checkpoints.load(worst)["step"]
+    played_step, newer_step = rundir.load_network(best)["step"], rundir.load_network(worst)["step"]
     assert played_step != newer_step
     play_games = dqnlab.evaluate.play_games
 

@@ -25,9 +25,10 @@ import torch
 from dqnlab.checkpoints import CheckpointStore
 from dqnlab.config import config_fingerprint, resolve_config
 from dqnlab.errors import DqnlabError, ResourceError
-from dqnlab.evaluate import load_run_config
 from dqnlab.replay import ReplayMemory
-from dqnlab.train import Learner, TrainingDiverged, prepare_run_dir, train
+from dqnlab.rundir import load_run_config, prepare_run_dir
+from dqnlab.state import TrainingDiverged, TrainingState
+from dqnlab.train import train
 
 CARTPOLE = [
     "--env", "CartPole-v1", "--steps", "3000", "--seed", "5",
@@ -216,7 +217,7 @@ def small_config(**overrides):
 def test_nan_stops_training_and_keeps_the_last_good_checkpoint(tmp_path: Path, monkeypatch) -> None:
     run = tmp_path / "run"
     prepare_run_dir(run, force=False)
-    original = Learner.advance
+    original = TrainingState.advance
 
     def advance(self):
         if self.steps == 237:  # poison the weights during step 238
@@ -224,7 +225,7 @@ def test_nan_stops_training_and_keeps_the_last_good_checkpoint(tmp_path: Path, m
                 next(self.agent.online.parameters()).fill_(float("nan"))
         return original(self)
 
-    monkeypatch.setattr(Learner, "advance", advance)
+    monkeypatch.setattr(TrainingState, "advance", advance)
     with pytest.raises(TrainingDiverged, match="at step 238"):
         train(small_config(), run, torch.device("cpu"), progress=False, tensorboard=False)
     store = CheckpointStore(run)

@@ -8,12 +8,17 @@ from pathlib import Path
 
 import torch
 
-from dqnlab import checkpoints
+from dqnlab import rundir
 from dqnlab.agent import Agent
-from dqnlab.checkpoints import CheckpointStore, eval_network_path
+from dqnlab.checkpoints import CheckpointStore
 from dqnlab.config import resolve_config
-from dqnlab.evaluate import load_run_config
-from dqnlab.train import keep_evaluated_network, prepare_run_dir, train
+from dqnlab.rundir import (
+    eval_network_path,
+    keep_evaluated_network,
+    load_run_config,
+    prepare_run_dir,
+)
+from dqnlab.train import train
 
 
 def test_update_and_target_copy_timing(tmp_path: Path, monkeypatch) -> None:
@@ -65,22 +70,22 @@ def test_run_directory_contents(tmp_path: Path) -> None:
         episodes = list(csv.DictReader(handle))
     assert sum(int(row["steps"]) for row in episodes) <= 1200
     assert all(float(row["score"]) == int(row["steps"]) for row in episodes)  # +1 per step
-    saved = checkpoints.load(run / "checkpoints" / "best.pt")
+    saved = rundir.load_network(run / "checkpoints" / "best.pt")
     assert saved["eval_mean"] == best and saved["config"]["seed"] == 3
     assert int(saved["step"]) in (400, 800, 1200)
-    last = checkpoints.load(run / "checkpoints" / "last.pt")
+    last = rundir.load_network(run / "checkpoints" / "last.pt")
     assert last["step"] == 1200 and "network" in last
     # The whole training state at every evaluation, the last two kept.
     assert CheckpointStore(run).steps() == [800, 1200]
     assert any((run / "tensorboard").iterdir())
     # The network of every evaluation is kept (eval_networks_kept = "all"), and worst.pt.
     for row in evaluations:
-        kept = checkpoints.load(eval_network_path(run, int(row["step"])))
+        kept = rundir.load_network(eval_network_path(run, int(row["step"])))
         assert kept["step"] == int(row["step"]) and kept["eval_mean"] == float(row["mean"])
     means = [(float(row["mean"]), int(row["step"])) for row in evaluations]
     worst_mean = min(mean for mean, _ in means)
     worst_step = max(step for mean, step in means if mean == worst_mean)  # ties: the later
-    worst = checkpoints.load(run / "checkpoints" / "worst.pt")
+    worst = rundir.load_network(run / "checkpoints" / "worst.pt")
     assert (worst["eval_mean"], worst["step"]) == (worst_mean, worst_step)
     assert not math.isnan(result.best_eval_mean)
 
@@ -95,7 +100,7 @@ def test_worst_network_is_chosen_after_the_first_quarter(tmp_path: Path) -> None
         history.append((step, mean))
         if step == 100:  # before the quarter: the early, untrained network never counts
             assert not worst.exists()
-    assert checkpoints.load(worst)["step"] == 1000  # 20.0 at 750 and 1000: the later
+    assert rundir.load_network(worst)["step"] == 1000  # 20.0 at 750 and 1000: the later
     assert not (tmp_path / "checkpoints" / "evals").exists()  # only best and worst kept
 
 
@@ -116,7 +121,7 @@ def test_replay_frames_on_the_device_train_and_resume_the_same(tmp_path: Path) -
             train(config, tmp_path / run, torch.device("cpu"), progress=False,
                   tensorboard=False, resume=n > 0)  # fmt: skip
         return list(
-            checkpoints.load(tmp_path / run / "checkpoints" / "last.pt")["network"].values()
+            rundir.load_network(tmp_path / run / "checkpoints" / "last.pt")["network"].values()
         )
 
     def same(a: list[torch.Tensor], b: list[torch.Tensor]) -> bool:

@@ -26,17 +26,15 @@ from typing import Any
 
 import psutil
 
-from dqnlab import checkpoints
+from dqnlab import rundir
 from dqnlab.config import (
-    RESUMABLE_CHANGES,
     Config,
-    config_fingerprint,
     config_to_toml,
+    differing_settings,
     parse_overrides,
     resolve_config,
 )
 from dqnlab.errors import ConfigError, DqnlabError
-from dqnlab.evaluate import CONFIG_FILE, load_run_config
 
 LOGS_DIR = "logs"
 
@@ -184,12 +182,10 @@ def _replay_bytes(config: Config) -> int:
 
 
 def _finished(run: PlannedRun) -> bool:
-    last = run.run_dir / "checkpoints" / "last.pt"
-    if not last.is_file() or not (run.run_dir / CONFIG_FILE).is_file():
+    if not rundir.is_run_dir(run.run_dir) or rundir.load_run_config(run.run_dir) != run.config:
         return False
-    if load_run_config(run.run_dir) != run.config:
-        return False
-    return int(checkpoints.load(last).get("step", -1)) >= run.config.total_steps
+    step = rundir.network_step(run.run_dir, "last")
+    return step is not None and step >= run.config.total_steps
 
 
 def _command(run: PlannedRun, config_path: Path, device: str) -> list[str]:
@@ -266,18 +262,13 @@ def _tail(path: Path | None, lines: int = 3) -> str:
 def check_sweep_dir(sweep: Sweep) -> None:
     """Refuse a sweep directory that holds other runs under this grid's run names (a
     finished or interrupted run of the same grid is fine: it is skipped or resumed)."""
-    if (sweep.directory / CONFIG_FILE).is_file():
+    if rundir.is_run_dir(sweep.directory):
         raise DqnlabError(f"{sweep.directory} is a run directory, not a sweep directory")
     for run in sweep.runs:
-        if not (run.run_dir / CONFIG_FILE).is_file():
+        if not rundir.is_run_dir(run.run_dir):
             continue
-        saved = load_run_config(run.run_dir)
-        if config_fingerprint(saved) != config_fingerprint(run.config):
-            differing = [
-                name
-                for name, value in run.config.to_dict().items()
-                if name not in RESUMABLE_CHANGES and saved.to_dict()[name] != value
-            ]
+        differing = differing_settings(rundir.load_run_config(run.run_dir), run.config)
+        if differing:
             raise DqnlabError(
                 f"{run.run_dir} holds a run with other settings ({', '.join(differing)}); "
                 "choose another --sweep-dir"

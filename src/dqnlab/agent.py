@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import copy
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import numpy as np
@@ -13,7 +13,6 @@ from torch import nn
 
 from dqnlab.config import Config
 from dqnlab.envs import Environment
-from dqnlab.errors import DqnlabError
 from dqnlab.networks import build_network
 from dqnlab.optim import build_optimizer
 from dqnlab.replay import Batch
@@ -91,17 +90,30 @@ class Agent:
         )
         self.rng = np.random.default_rng(seed)
         self.updates = 0
+        # What the network takes and chooses among, where known (`agent_for_input` sets it).
+        self.input_shape: tuple[int, ...] | None = None
+        self.observation_dtype: np.dtype | None = None
+        self.action_names: list[str] | None = None
         self._optimizer_step: Callable[[], object] = self.optimizer.step
         if compile_update:
             self._loss_and_backward = torch.compile(self._loss_and_backward)  # type: ignore[method-assign]
             self._optimizer_step = torch.compile(self.optimizer.step)
 
     def act(self, stacked_observation: np.ndarray, epsilon: float) -> int:
-        """Epsilon-greedy; ties between best actions go to a random one (Lua greedy)."""
+        """Epsilon-greedy on one stacked observation (`epsilon_greedy`)."""
+        return self.epsilon_greedy(epsilon, lambda: self.q_values(stacked_observation[None])[0])
+
+    def epsilon_greedy(
+        self, epsilon: float, q_values: np.ndarray | Callable[[], np.ndarray]
+    ) -> int:
+        """A uniform random action with probability `epsilon`, else the action of the highest
+        Q-value, ties going to a random one of them (Lua NeuralQLearner:greedy). `q_values`
+        may be a function, called only when the choice is greedy (a random action needs no
+        forward pass)."""
         if self.rng.random() < epsilon:
             return int(self.rng.integers(self.num_actions))
-        q_values = self.q_values(stacked_observation[None])[0]
-        best = np.flatnonzero(q_values == q_values.max())
+        values = q_values() if callable(q_values) else q_values
+        best = np.flatnonzero(values == values.max())
         return int(best[0] if len(best) == 1 else self.rng.choice(best))
 
     def q_values(self, stacked_observations: np.ndarray) -> np.ndarray:
@@ -186,33 +198,37 @@ def _on_device(frames: np.ndarray | torch.Tensor, device: torch.device) -> torch
     return tensor.to(device)
 
 
-def resolve_device(name: str) -> torch.device:
-    if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    if name not in ("cpu", "cuda") and not name.startswith("cuda:"):
-        raise DqnlabError(f"--device {name!r} is not one of: auto, cpu, cuda")
-    if name.startswith("cuda") and not torch.cuda.is_available():
-        raise DqnlabError(f"--device {name} was asked for but no CUDA device is available")
-    return torch.device(name)
+def is_image_observation(observation_shape: tuple[int, ...], dtype: np.dtype) -> bool:
+    return np.dtype(dtype) == np.uint8 and len(observation_shape) >= 2
 
 
-def is_image_observation(env: Environment) -> bool:
-    return env.observation_dtype == np.uint8 and len(env.observation_shape) >= 2
+def build_agent(config: Config, env: Environment, device: torch.device, seed: int) -> Agent:
+    """The configured network for this environment, wrapped in an agent."""
+    input_shape = (config.history_length, *env.observation_shape)
+    return agent_for_input(
+        config, input_shape, env.observation_dtype, env.action_names, device, seed
+    )
 
 
-def build_agent(
+def agent_for_input(
     config: Config,
-    env: Environment,
+    input_shape: tuple[int, ...],
+    observation_dtype: np.dtype,
+    action_names: Sequence[str],
     device: torch.device,
     seed: int,
 ) -> Agent:
-    """The configured network for this environment, wrapped in an agent."""
-    input_shape = (config.history_length, *env.observation_shape)
+    """The configured network for inputs of `input_shape` (history, *observation shape)
+    and one Q-value per action of `action_names`, wrapped in an agent."""
     network = build_network(
         config.network,
         input_shape,
-        env.num_actions,
-        is_image_observation(env),
+        len(action_names),
+        is_image_observation(input_shape[1:], observation_dtype),
         config.mlp_hidden_sizes,
     )
-    return Agent(network, env.num_actions, config, device, seed, config.compile_update)
+    agent = Agent(network, len(action_names), config, device, seed, config.compile_update)
+    agent.input_shape = tuple(input_shape)
+    agent.observation_dtype = np.dtype(observation_dtype)
+    agent.action_names = list(action_names)
+    return agent

@@ -23,7 +23,7 @@ from dqnlab.errors import DqnlabError
 from dqnlab.evaluate import play, play_games
 from dqnlab.peers import peer_available, run_sb3_dqn
 from dqnlab.replay import ReplayMemory
-from dqnlab.train import TIMED_PARTS, Learner, replay_device
+from dqnlab.state import TIMED_PARTS, TrainingState, replay_device
 
 
 def _resident_bytes() -> int:
@@ -37,17 +37,17 @@ def _fill(replay: ReplayMemory, rng: np.random.Generator) -> None:
         replay.add(pool[i % 64], int(i % 4), 0.0, False)
 
 
-def _measure_training(learner: Learner, steps: int) -> tuple[float, dict[str, float]]:
+def _measure_training(training: TrainingState, steps: int) -> tuple[float, dict[str, float]]:
     """Frames/s over `steps` training steps, and the fraction of time in each part."""
-    frames, start = learner.env.frames, time.perf_counter()
-    learner.seconds = dict.fromkeys(learner.seconds, 0.0)
+    frames, start = training.env.frames, time.perf_counter()
+    training.seconds = dict.fromkeys(training.seconds, 0.0)
     for _ in range(steps):
-        learner.advance()
-    float(learner.loss_sum)  # wait for the device
+        training.advance()
+    float(training.loss_sum)  # wait for the device
     seconds = time.perf_counter() - start
-    parts = {name: learner.seconds[name] / seconds for name in TIMED_PARTS}
+    parts = {name: training.seconds[name] / seconds for name in TIMED_PARTS}
     parts["other"] = 1.0 - sum(parts.values())  # the loop's own overhead
-    return (learner.env.frames - frames) / seconds, parts
+    return (training.env.frames - frames) / seconds, parts
 
 
 def run_benchmark(
@@ -112,8 +112,8 @@ def run_benchmark(
     figures["sample_us"] = float(np.median(timings) * 1e6)
 
     # The update alone, on one sampled minibatch.
-    learner = Learner(config, device, replay=replay)
-    agent = learner.agent
+    training = TrainingState(config, device, replay=replay)
+    agent = training.agent
     batch = replay.sample()
     for _ in range(5):
         agent.update(batch)
@@ -127,12 +127,12 @@ def run_benchmark(
     # Training after the replay-start phase, alternating with the peer when asked. Measured
     # where epsilon has reached its final 0.1, as for 49 of the 50M steps of a Nature run
     # (at the start of the anneal nearly every action is random and skips the network).
-    learner.steps = config.replay_start_steps + config.epsilon_decay_steps
+    training.steps = config.replay_start_steps + config.epsilon_decay_steps
     for _ in range(100):
-        learner.advance()
+        training.advance()
     train_runs, peer_runs = [], []
     for _ in range(rounds):
-        train_runs.append(_measure_training(learner, steps))
+        train_runs.append(_measure_training(training, steps))
         if peers:
             # The peer's epsilon reaches 0.1 by the end of its replay start: measured alike.
             peer_runs.append(
@@ -173,7 +173,7 @@ def run_benchmark(
     figures["eval_frames_per_second"] = final.frames_per_second
     figures["eval_envs"] = final.num_envs
     figures["eval_workers"] = final.workers
-    single = play(agent, learner.eval_env, 4, config.eval_epsilon, max_steps=steps)
+    single = play(agent, training.eval_env, 4, config.eval_epsilon, max_steps=steps)
     figures["eval_frames_per_second_single"] = single.frames_per_second
-    learner.close()
+    training.close()
     return figures

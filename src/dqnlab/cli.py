@@ -11,6 +11,7 @@ from typing import Annotated
 
 import typer
 
+from dqnlab.config import DEFAULT_EVALUATION_SEED
 from dqnlab.errors import DqnlabError
 
 app = typer.Typer(
@@ -53,10 +54,9 @@ def train(
     progress: Annotated[bool, typer.Option(help="Show the live progress bar")] = True,
 ) -> None:
     """Train a DQN; writes config, CSV logs, TensorBoard events and checkpoints to the run dir."""
-    from dqnlab.agent import resolve_device
     from dqnlab.config import parse_overrides, resolve_config
     from dqnlab.envs import check_env_name, is_atari
-    from dqnlab.train import prepare_run_dir
+    from dqnlab.rundir import default_run_dir, prepare_run_dir
 
     check_env_name(env)
     preset = preset or ("nature" if is_atari(env) else "classic")
@@ -64,11 +64,7 @@ def train(
         preset, parse_overrides(set_ or []), env=env, total_steps=steps, seed=seed
     )
     torch_device = resolve_device(device)
-    run_dir = (
-        run_dir
-        or Path("runs")
-        / f"{env.replace(':', '_').replace('/', '_')}-{Path(preset).stem}-s{config.seed}"
-    )
+    run_dir = run_dir or default_run_dir(env, preset, config.seed)
     resume = prepare_run_dir(run_dir, force, config)
     verb = "resuming" if resume else "training"
     typer.echo(f"dqnlab: {verb} {env} with preset {preset} on {torch_device} into {run_dir}")
@@ -87,14 +83,12 @@ def resume(
     """Carry on a run from its newest complete checkpoint, exactly where it stopped."""
     import dataclasses
 
-    from dqnlab.agent import resolve_device
-    from dqnlab.config import config_to_toml
-    from dqnlab.evaluate import CONFIG_FILE, load_run_config
+    from dqnlab.rundir import load_run_config, update_run_config
 
     config = load_run_config(run_dir)
-    if steps is not None and steps != config.total_steps:
+    if steps is not None:
         config = dataclasses.replace(config, total_steps=steps)
-        (run_dir / CONFIG_FILE).write_text(config_to_toml(config))
+        update_run_config(run_dir, config)
     torch_device = resolve_device(device)
     typer.echo(f"dqnlab: resuming {config.env} on {torch_device} from {run_dir}")
     _run(config, run_dir, torch_device, progress, resume=True)
@@ -141,7 +135,9 @@ def evaluate(
     json_path: Annotated[
         Path | None, typer.Option("--json", help="Write the result as JSON to this file")
     ] = None,
-    seed: Annotated[int, typer.Option(help="Seed of the evaluation's random streams")] = 12345,
+    seed: Annotated[
+        int, typer.Option(help="Seed of the evaluation's random streams")
+    ] = DEFAULT_EVALUATION_SEED,
     device: Annotated[str, typer.Option(help="auto, cpu or cuda")] = "auto",
     video: Annotated[
         Path | None,
@@ -159,13 +155,8 @@ def evaluate(
     are played one after another on one emulator and filmed from the raw screens (every
     emulator frame, 60 frames/s); without it they are spread over every core (other
     games, the same protocol)."""
-    from dqnlab.agent import resolve_device
-    from dqnlab.evaluate import (
-        final_evaluation,
-        final_evaluation_record,
-        load_final_evaluation,
-        save_final_evaluation,
-    )
+    from dqnlab.evaluate import final_evaluation, final_evaluation_record
+    from dqnlab.rundir import load_final_evaluation, record_final_evaluation
 
     if video is None:
         result, network = final_evaluation(
@@ -182,18 +173,14 @@ def evaluate(
     )
     record = final_evaluation_record(result, config, network.path, network.step, seed)
     if checkpoint == "best":
-        saved = load_final_evaluation(run_dir)
-        if (
-            saved is not None
-            and saved.get("checkpoint_step") == network.step
-            and int(saved["episodes"]) > len(result.scores)
-        ):
-            typer.echo(
-                f"dqnlab: kept {run_dir / 'final_evaluation.json'}: it holds "
-                f"{saved['episodes']} games of this network"
-            )
+        path, written = record_final_evaluation(run_dir, record)
+        if written:
+            typer.echo(f"dqnlab: saved as {path}")
         else:
-            typer.echo(f"dqnlab: saved as {save_final_evaluation(run_dir, record)}")
+            saved = load_final_evaluation(run_dir) or {}
+            typer.echo(
+                f"dqnlab: kept {path}: it holds {saved.get('episodes')} games of this network"
+            )
     if json_path:
         json_path.parent.mkdir(parents=True, exist_ok=True)
         json_path.write_text(json.dumps(record, indent=2) + "\n")
@@ -210,10 +197,10 @@ def _filmed_evaluation(  # noqa: ANN202
 ):
     """`final_evaluation`'s games played on one environment (as with num_envs=1) and filmed."""
     from dqnlab.evaluate import load_evaluated_agent
-    from dqnlab.video import record_games
+    from dqnlab.video import VIDEO_FORMATS, record_games
 
-    if video_format not in ("auto", "mp4", "gif"):
-        raise DqnlabError(f"--video-format {video_format!r}: choose auto, mp4 or gif")
+    if video_format not in VIDEO_FORMATS:
+        raise DqnlabError(f"--video-format {video_format!r}: choose {', '.join(VIDEO_FORMATS)}")
     if episodes is not None and episodes <= 0:
         raise DqnlabError(f"--episodes {episodes} must be positive")
     network = load_evaluated_agent(run_dir, checkpoint, seed, device)
@@ -256,7 +243,6 @@ def bench(
     ] = False,
 ) -> None:
     """Measure training and evaluation throughput, the update, and replay memory use."""
-    from dqnlab.agent import resolve_device
     from dqnlab.bench import run_benchmark
 
     figures = run_benchmark(
@@ -321,14 +307,14 @@ def ablate(
 
     Running the same command again skips finished runs and resumes interrupted ones."""
     from dqnlab.ablate import check_sweep_dir, default_jobs, parse_variation, plan_sweep, run_sweep
-    from dqnlab.agent import resolve_device
     from dqnlab.config import parse_overrides
     from dqnlab.envs import check_env_name, is_atari
+    from dqnlab.rundir import default_sweep_dir
 
     check_env_name(env)
     variations = [parse_variation(text) for text in vary]
-    keys = "+".join(key for variation in variations for key in variation.keys)
-    sweep_dir = sweep_dir or Path("sweeps") / f"{env.replace(':', '_').replace('/', '_')}-{keys}"
+    keys = [key for variation in variations for key in variation.keys]
+    sweep_dir = sweep_dir or default_sweep_dir(env, keys)
     sweep = plan_sweep(
         env,
         variations,
@@ -386,9 +372,9 @@ def report(
     if episodes is not None and episodes <= 0:
         raise DqnlabError(f"--episodes {episodes} must be positive")
     if out is None:
-        from dqnlab.evaluate import CONFIG_FILE
+        from dqnlab.rundir import is_run_dir
 
-        one_sweep = len(run_dirs) == 1 and not (run_dirs[0] / CONFIG_FILE).is_file()
+        one_sweep = len(run_dirs) == 1 and not is_run_dir(run_dirs[0])
         out = run_dirs[0] / "report" if one_sweep else Path("report")
     _report(run_dirs, out, episodes, device, frames)
 
@@ -396,7 +382,6 @@ def report(
 def _report(
     run_dirs: list[Path], out: Path, episodes: int | None, device: str, frames: int = 4
 ) -> None:
-    from dqnlab.agent import resolve_device
     from dqnlab.report import best_network_evaluator, format_table, write_report
 
     torch_device = resolve_device(device)
@@ -449,12 +434,12 @@ def inspect(
     overview.png, q_values.csv and the inputs. worst is the network of the lowest
     periodic evaluation after the first quarter of training; steps need
     eval_networks_kept = "all"."""
-    from dqnlab.agent import resolve_device
     from dqnlab.inspection import inspect_run, parse_checkpoints
+    from dqnlab.rundir import inspect_dir
 
     if frames <= 0:
         raise DqnlabError(f"--frames {frames} must be positive")
-    out = out or run_dir / "inspect"
+    out = out or inspect_dir(run_dir)
     inspection = inspect_run(
         run_dir,
         out,
@@ -492,6 +477,19 @@ def presets(
         return
     load_preset(name)  # validates the name
     typer.echo((resources.files("dqnlab") / "presets" / f"{name}.toml").read_text(), nl=False)
+
+
+def resolve_device(name: str):  # noqa: ANN201 - torch is imported only when needed
+    """The torch device of a --device option, or a one-line error."""
+    import torch
+
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if name not in ("cpu", "cuda") and not name.startswith("cuda:"):
+        raise DqnlabError(f"--device {name!r} is not one of: auto, cpu, cuda")
+    if name.startswith("cuda") and not torch.cuda.is_available():
+        raise DqnlabError(f"--device {name} was asked for but no CUDA device is available")
+    return torch.device(name)
 
 
 def _keep_freed_memory() -> None:

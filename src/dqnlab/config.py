@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import dataclasses
 import difflib
+import hashlib
+import json
 import sys
 import typing
 from dataclasses import dataclass, field
@@ -127,7 +129,9 @@ class Config:
 
 
 FIELD_NAMES = tuple(f.name for f in dataclasses.fields(Config))
-_CHOICES = {
+# The accepted values of each setting that takes one of a few names; modules that
+# dispatch on a setting read its list here.
+CHOICES: dict[str, tuple[str, ...]] = {
     "frame_pooling": ("max_rgb", "max_gray", "none"),
     "grayscale": ("luminance", "ale"),
     "byte_conversion": ("truncate", "round"),
@@ -141,7 +145,7 @@ _CHOICES = {
 
 
 def _validate(config: Config) -> None:
-    for name, choices in _CHOICES.items():
+    for name, choices in CHOICES.items():
         value = getattr(config, name)
         if value not in choices:
             raise ConfigError(f"{name} = {value!r} is not one of: {', '.join(choices)}")
@@ -187,13 +191,27 @@ RESUMABLE_CHANGES = (
 
 
 def config_fingerprint(config: Config) -> str:
-    """What a checkpoint must match to be resumed: every setting but `RESUMABLE_CHANGES`."""
-    from dqnlab import checkpoints  # torch: kept out of the environment workers' imports
+    """What a checkpoint must match to be resumed: SHA-256 of the canonical JSON of every
+    setting but `RESUMABLE_CHANGES`. Equal settings, equal fingerprints."""
+    values = {k: v for k, v in config.to_dict().items() if k not in RESUMABLE_CHANGES}
+    canonical = json.dumps(values, sort_keys=True, separators=(",", ":"), ensure_ascii=True)
+    return hashlib.sha256(canonical.encode()).hexdigest()
 
-    values = config.to_dict()
-    for name in RESUMABLE_CHANGES:
-        values.pop(name)
-    return checkpoints.config_fingerprint(values)
+
+def differing_settings(saved: Config, config: Config) -> list[str]:
+    """The settings, in `Config` order, in which `config` differs from `saved` and which a
+    resumed run may not change (every one but `RESUMABLE_CHANGES`)."""
+    before, after = saved.to_dict(), config.to_dict()
+    return [
+        name
+        for name in FIELD_NAMES
+        if name not in RESUMABLE_CHANGES and before[name] != after[name]
+    ]
+
+
+# Seeds a final evaluation's games unless `dqnlab evaluate --seed` says otherwise; a report
+# plays missing final evaluations with it too.
+DEFAULT_EVALUATION_SEED = 12345
 
 
 def derive_seeds(seed: int, count: int) -> list[int]:
@@ -300,17 +318,24 @@ def config_from_dict(values: dict[str, Any]) -> Config:
     return Config(**{name: _coerce(name, value) for name, value in values.items()})
 
 
+def toml_value(value: Any) -> str:
+    """A setting's value as TOML writes it (strings quoted)."""
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, str):
+        return '"' + value.replace("\\", "\\\\").replace('"', '\\"') + '"'
+    if isinstance(value, (list, tuple)):
+        return "[" + ", ".join(toml_value(v) for v in value) + "]"
+    return repr(value)
+
+
+def setting_text(value: Any) -> str:
+    """A setting's value as `--set` takes it: TOML, but a string as it is."""
+    return value if isinstance(value, str) else toml_value(value)
+
+
 def config_to_toml(config: Config) -> str:
     lines = ["# Resolved dqnlab configuration of this run."]
     for f in dataclasses.fields(Config):
-        value = getattr(config, f.name)
-        if isinstance(value, bool):
-            text = "true" if value else "false"
-        elif isinstance(value, str):
-            text = '"' + value.replace("\\", "\\\\").replace('"', '\\"') + '"'
-        elif isinstance(value, tuple):
-            text = "[" + ", ".join(str(v) for v in value) + "]"
-        else:
-            text = repr(value)
-        lines.append(f"{f.name} = {text}  # {f.metadata['doc']}")
+        lines.append(f"{f.name} = {toml_value(getattr(config, f.name))}  # {f.metadata['doc']}")
     return "\n".join(lines) + "\n"

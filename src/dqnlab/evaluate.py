@@ -18,12 +18,11 @@ releases it, but emulation is most of a step.
 from __future__ import annotations
 
 import contextlib
-import json
 import os
 import sys
 import time
 import warnings
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -31,20 +30,13 @@ from typing import Any
 import numpy as np
 import torch
 
-from dqnlab import checkpoints
-from dqnlab.agent import Agent, build_agent
-from dqnlab.config import Config, config_from_dict, derive_seeds
+from dqnlab import rundir
+from dqnlab.agent import Agent
+from dqnlab.config import Config, derive_seeds
 from dqnlab.envs import Environment, is_atari, make_env
 from dqnlab.envs.pool import FINISHED, NEW_EPISODE, RUNNING, EnvGroup, EnvWorkers, Lockstep
 from dqnlab.errors import DqnlabError
 from dqnlab.replay import FrameHistory
-
-if sys.version_info >= (3, 11):
-    import tomllib
-else:  # pragma: no cover
-    import tomli as tomllib
-
-CONFIG_FILE = "config.toml"
 
 
 @dataclass
@@ -76,11 +68,14 @@ def play(
     epsilon: float,
     max_steps: int | None = None,
     max_episodes: int | None = None,
+    choose: Callable[[int, np.ndarray], int] | None = None,
 ) -> EvaluationResult:
     """Play until `max_steps` agent steps or `max_episodes` finished games, whichever first.
 
     Only finished games count: an episode cut by `max_steps` is dropped (Lua, dqn_zoo).
-    A game ends at game over or at the environment's episode cap.
+    A game ends at game over or at the environment's episode cap. Each action is
+    `agent.act(history, epsilon)`, or `choose(step, history)` where given (`step`
+    counts the agent steps of this play from 0).
     """
     if max_steps is None and max_episodes is None:
         raise ValueError("play needs max_steps or max_episodes")
@@ -93,7 +88,11 @@ def play(
     while (max_steps is None or result.steps < max_steps) and (
         max_episodes is None or len(result.scores) < max_episodes
     ):
-        observation, reward, terminated, truncated = env.step(agent.act(history.frames, epsilon))
+        if choose is None:
+            action = agent.act(history.frames, epsilon)
+        else:
+            action = choose(result.steps, history.frames)
+        observation, reward, terminated, truncated = env.step(action)
         result.steps += 1
         score += reward
         if env.game_ended:
@@ -148,7 +147,7 @@ class _ActingBatch:
             np.take(histories, self.active_rows, axis=0, out=inputs, mode="clip")
         q_values = agent.q_values(inputs)
         for row, i in enumerate(self.active):
-            actions[i] = _epsilon_greedy(q_values[row], epsilon, agent.rng)
+            actions[i] = agent.epsilon_greedy(epsilon, q_values[row])
 
     def record(
         self,
@@ -206,14 +205,6 @@ def default_num_envs(episodes: int) -> int:
     Measured on 2 shared cores (Breakout, untrained network, 30 games): 30 environments
     6,600 frames/s, 16 5,800-6,000, 8 4,900-5,700, the sequential `play` 2,200-2,500."""
     return min(episodes, 32)
-
-
-def _epsilon_greedy(q_values: np.ndarray, epsilon: float, rng: np.random.Generator) -> int:
-    """`Agent.act` from Q-values already computed: the same choice, the same draws."""
-    if rng.random() < epsilon:
-        return int(rng.integers(len(q_values)))
-    best = np.flatnonzero(q_values == q_values.max())
-    return int(best[0] if len(best) == 1 else rng.choice(best))
 
 
 @contextlib.contextmanager
@@ -274,9 +265,9 @@ def play_games(
     games = [len(range(i, episodes, num_envs)) for i in range(num_envs)]
     half = (num_envs + 1) // 2
     batches = [range(0, half), range(half, num_envs)] if num_envs > 1 else [range(1)]
-    probe = make_env(config, training=False, seed=seeds[0], max_episode_frames=max_episode_frames)
-    frame_shape, frame_dtype = probe.observation_shape, np.dtype(probe.observation_dtype)
-    probe.close()
+    if agent.input_shape is None or agent.observation_dtype is None:
+        raise ValueError("play_games needs an agent built for its input (agent_for_input)")
+    frame_shape, frame_dtype = agent.input_shape[1:], agent.observation_dtype
     layout = Lockstep.layout(num_envs, frame_shape, frame_dtype)
     acting = [
         _ActingBatch(k, ids, config.history_length, frame_shape, frame_dtype)
@@ -348,20 +339,6 @@ def _lockstep_play(
     return result
 
 
-def load_run_config(run_dir: Path) -> Config:
-    path = run_dir / CONFIG_FILE
-    if not path.is_file():
-        raise DqnlabError(f"{run_dir} is not a dqnlab run directory (no {CONFIG_FILE})")
-    try:
-        with path.open("rb") as handle:
-            return config_from_dict(tomllib.load(handle))
-    except tomllib.TOMLDecodeError as error:
-        raise DqnlabError(f"{path} is not valid TOML: {error}") from None
-
-
-FINAL_EVALUATION_FILE = "final_evaluation.json"
-
-
 def final_evaluation_record(
     result: EvaluationResult,
     config: Config,
@@ -389,26 +366,6 @@ def final_evaluation_record(
     }
 
 
-def save_final_evaluation(run_dir: Path, record: dict[str, Any]) -> Path:
-    """Write `record` as the run's final evaluation (read by `dqnlab report`)."""
-    path = run_dir / FINAL_EVALUATION_FILE
-    temporary = path.with_name(path.name + ".tmp")
-    temporary.write_text(json.dumps(record, indent=2) + "\n")
-    os.replace(temporary, path)
-    return path
-
-
-def load_final_evaluation(run_dir: Path) -> dict[str, Any] | None:
-    """The run's saved final evaluation, or None if it has none yet."""
-    path = run_dir / FINAL_EVALUATION_FILE
-    if not path.is_file():
-        return None
-    try:
-        return json.loads(path.read_text())
-    except json.JSONDecodeError as error:
-        raise DqnlabError(f"{path} is not valid JSON: {error}") from None
-
-
 @dataclass
 class EvaluatedNetwork:
     """A saved network ready to play, and where it came from."""
@@ -423,41 +380,21 @@ class EvaluatedNetwork:
 def load_evaluated_agent(
     run_dir: Path, checkpoint: str, seed: int, device: torch.device
 ) -> EvaluatedNetwork:
-    """The network `final_evaluation` plays: the agent built from the configuration saved
-    in the checkpoint ("best", "last" or a file path), its weights loaded, and the seed
-    of the evaluation's environments (child 0 of `seed`; child 1 seeds the agent)."""
+    """The network `final_evaluation` plays: the agent built from the network file
+    ("best", "last" or a file path), and the seed of the evaluation's environments (child 0
+    of `seed`; child 1 seeds the agent)."""
     if checkpoint in ("best", "last"):
-        load_run_config(run_dir)  # a clear error if RUN_DIR is not a run
-        path = run_dir / "checkpoints" / f"{checkpoint}.pt"
+        rundir.load_run_config(run_dir)  # a clear error if RUN_DIR is not a run
+        path = rundir.network_path(run_dir, checkpoint)
     else:
         path = Path(checkpoint)
-    payload = checkpoints.load(path, map_location=device)
-    agent, config, env_seed = agent_from_checkpoint(payload, path, seed, device)
+    payload = rundir.load_network(path, map_location=device)
+    agent, config, env_seed = rundir.agent_from_network(payload, path, seed, device)
     message = unbounded_games_warning(config)
     if message is not None:
         warnings.warn(message, stacklevel=2)
     step = payload.get("step")
     return EvaluatedNetwork(agent, config, path, int(step) if step is not None else None, env_seed)
-
-
-def agent_from_checkpoint(
-    payload: dict[str, Any], path: Path, seed: int, device: torch.device
-) -> tuple[Agent, Config, int]:
-    """An agent with the network saved in `payload` (a network file or a training
-    checkpoint's state, read from `path`), built with the configuration saved beside it,
-    its epsilon-greedy draws seeded with child 1 of `seed`; and child 0, which seeds the
-    environments it plays."""
-    config = config_from_dict(payload["config"])
-    weights = payload["network"] if "network" in payload else payload["agent"]["online"]
-    env_seed, agent_seed = derive_seeds(seed, 2)
-    probe = make_env(config, training=False, seed=env_seed)  # for the network's shapes
-    agent = build_agent(config, probe, device, agent_seed)
-    probe.close()
-    try:
-        agent.online.load_state_dict(weights)
-    except RuntimeError as error:
-        raise DqnlabError(f"checkpoint {path} does not fit its network: {error}") from None
-    return agent, config, env_seed
 
 
 def unbounded_games_warning(config: Config) -> str | None:

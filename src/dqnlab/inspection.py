@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import csv
 import math
-import re
 from collections import Counter
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
@@ -32,16 +31,14 @@ from matplotlib.axes import Axes
 from matplotlib.figure import Figure
 from matplotlib.patches import Patch
 
-from dqnlab import checkpoints
+from dqnlab import rundir
 from dqnlab.agent import Agent
-from dqnlab.checkpoints import EVAL_NETWORKS_DIR, eval_network_path
 from dqnlab.config import Config, derive_seeds
 from dqnlab.envs import Environment, make_env
 from dqnlab.envs.atari import AtariEnv
 from dqnlab.errors import DqnlabError
-from dqnlab.evaluate import agent_from_checkpoint, load_run_config
+from dqnlab.evaluate import EvaluationResult, play
 from dqnlab.logs import read_csv
-from dqnlab.replay import FrameHistory
 
 CHECKPOINT_NAMES = ("best", "worst")
 DEFAULT_FRAMES = 8
@@ -56,7 +53,6 @@ CSV_COLUMNS = (
     "frame", "network", "checkpoint_step", "eval_mean", "action_index", "action_name",
     "q_value", "is_argmax",
 )  # fmt: skip
-_EVAL_NETWORK_FILE = re.compile(r"step-(\d+)\.pt")
 _GREEDY_HATCH = "//"
 
 
@@ -134,23 +130,10 @@ def _checked_names(checkpoints: Iterable[str | int]) -> list[str]:
     return names
 
 
-def available_eval_steps(run_dir: Path) -> list[int]:
-    """The steps whose evaluated network is kept (`eval_networks_kept = "all"`)."""
-    directory = run_dir / "checkpoints" / EVAL_NETWORKS_DIR
-    if not directory.is_dir():
-        return []
-    steps = []
-    for path in directory.iterdir():
-        match = _EVAL_NETWORK_FILE.fullmatch(path.name)
-        if match:
-            steps.append(int(match.group(1)))
-    return sorted(steps)
-
-
 def network_path(run_dir: Path, checkpoint: str | int, config: Config) -> Path:
     """The file of `checkpoint` ("best", "worst" or a step) in the run, or a clear error."""
     if checkpoint in CHECKPOINT_NAMES:
-        path = run_dir / "checkpoints" / f"{checkpoint}.pt"
+        path = rundir.network_path(run_dir, checkpoint)
         if checkpoint == "worst" and not path.is_file():
             quarter = config.total_steps / 4
             raise DqnlabError(
@@ -162,10 +145,10 @@ def network_path(run_dir: Path, checkpoint: str | int, config: Config) -> Path:
             raise DqnlabError(f"{run_dir} has no {checkpoint} network ({path} is missing)")
         return path
     step = int(checkpoint)
-    path = eval_network_path(run_dir, step)
+    path = rundir.eval_network_path(run_dir, step)
     if path.is_file():
         return path
-    available = available_eval_steps(run_dir)
+    available = rundir.eval_network_steps(run_dir)
     if not available and config.eval_networks_kept != "all":
         raise DqnlabError(
             f"{run_dir} keeps no network per evaluation (eval_networks_kept = "
@@ -176,7 +159,7 @@ def network_path(run_dir: Path, checkpoint: str | int, config: Config) -> Path:
 
 
 def _evaluations_text(run_dir: Path) -> str:
-    path = run_dir / "evaluations.csv"
+    path = rundir.evaluations_path(run_dir)
     steps = [row["step"] for row in read_csv(path)] if path.is_file() else []
     return f"evaluations at steps {', '.join(steps)}" if steps else "no evaluation yet"
 
@@ -186,8 +169,8 @@ def load_network(
 ) -> tuple[InspectedNetwork, Agent, Config]:
     """The network saved at `path`, built with the configuration it was trained with, in
     an agent seeded with `seed` (its epsilon-greedy draws)."""
-    payload = checkpoints.load(path, map_location=device)
-    agent, config, _ = agent_from_checkpoint(payload, path, seed, device)
+    payload = rundir.load_network(path, map_location=device)
+    agent, config, _ = rundir.agent_from_network(payload, path, seed, device)
     agent.online.eval()
     step = int(payload["step"])
     eval_mean = float(payload.get("eval_mean", float("nan")))
@@ -222,67 +205,61 @@ def pick_frames(
     if frames <= 0 or max_game_steps <= 0:
         raise DqnlabError(f"frames ({frames}) and max_game_steps ({max_game_steps}) must be > 0")
     actions: list[int] = []
-    rewards: list[float] = []
 
-    def choose(step: int, history: np.ndarray, env: Environment) -> int:
+    def choose(step: int, history: np.ndarray) -> int:
         actions.append(agent.act(history, config.eval_epsilon))
         return actions[-1]
 
-    game_ended = _play_first_game(config, seed, max_game_steps, choose, rewards)
+    first = _play_first_game(agent, config, _first_game_env(config, seed), max_game_steps, choose)
     played = len(actions)
     count = min(frames, played)
     chosen = [int((i + 0.5) * played / count) for i in range(count)]
     chosen_steps = set(chosen)
     observations: list[np.ndarray] = []
     screens: list[np.ndarray] = []
-    replayed: list[float] = []
+    env = _first_game_env(config, seed)
 
-    def replay(step: int, history: np.ndarray, env: Environment) -> int:
+    def replay(step: int, history: np.ndarray) -> int:
         if step in chosen_steps:
             observations.append(history.copy())
             if isinstance(env, AtariEnv):
                 screens.append(env.ale.getScreenRGB())
         return actions[step]
 
-    _play_first_game(config, seed, played, replay, replayed)
-    if replayed != rewards or len(observations) != count:
+    again = _play_first_game(agent, config, env, played, replay)
+    same = (again.scores, again.steps, again.frames) == (first.scores, first.steps, first.frames)
+    if not same or len(observations) != count:
         raise DqnlabError(
             f"{config.env} did not replay its game identically from the same seed and "
             "actions; frames cannot be picked from it (save observations and pass them instead)"
         )
     return PickedFrames(
-        np.stack(observations), np.stack(screens) if screens else None, chosen, played, game_ended
+        np.stack(observations),
+        np.stack(screens) if screens else None,
+        chosen,
+        played,
+        game_ended=bool(first.scores),
+    )
+
+
+def _first_game_env(config: Config, seed: int) -> Environment:
+    return make_env(
+        config, training=False, seed=seed, max_episode_frames=config.final_eval_max_episode_frames
     )
 
 
 def _play_first_game(
+    agent: Agent,
     config: Config,
-    seed: int,
+    env: Environment,
     max_steps: int,
-    choose: Callable[[int, np.ndarray, Environment], int],
-    rewards: list[float],
-) -> bool:
-    """Play the first game of a fresh evaluation environment seeded with `seed`, stacking
-    observations as `evaluate.play` does; `choose(step, stacked_input, env)` picks each
-    action and each step's reward is appended to `rewards`. True if the game ended within
-    `max_steps`."""
-    env = make_env(
-        config, training=False, seed=seed, max_episode_frames=config.final_eval_max_episode_frames
-    )
+    choose: Callable[[int, np.ndarray], int],
+) -> EvaluationResult:
+    """The first game of `env`, for at most `max_steps` agent steps, each action
+    `choose(step, stacked_input)` (`evaluate.play`); `env` is closed afterwards."""
     try:
-        history = FrameHistory(config.history_length, env.observation_shape, env.observation_dtype)
-        history.reset(env.reset(new_game=True))
-        for step in range(max_steps):
-            action = choose(step, history.frames, env)
-            observation, reward, terminated, truncated = env.step(action)
-            rewards.append(reward)
-            if env.game_ended:
-                return True
-            if terminated or truncated:  # an environment may end an episode without a game end
-                history.reset(env.reset())
-            else:
-                history.push(observation)
-        return False
+        return play(agent, env, config.history_length, 0.0, max_steps=max_steps, max_episodes=1,
+                    choose=choose)  # fmt: skip
     finally:
         env.close()
 
@@ -335,16 +312,16 @@ def inspect_run(
     (frame-000.png, ...; older ones removed), an overview of up to 16 frames, q_values.csv,
     observations.npy and, for Atari, screens.npy."""
     device = device or torch.device("cpu")
-    config = load_run_config(run_dir)  # a clear error if RUN_DIR is not a run
+    config = rundir.load_run_config(run_dir)  # a clear error if RUN_DIR is not a run
     paths = [(name, network_path(run_dir, name, config)) for name in _checked_names(checkpoints)]
     best, best_agent, best_config = load_network(
-        "best", run_dir / "checkpoints" / "best.pt", device, seed
+        "best", rundir.network_path(run_dir, "best"), device, seed
     )
     env_seed = derive_seeds(seed, 2)[0]
-    probe = make_env(best_config, training=False, seed=env_seed)
-    action_names = list(probe.action_names)
-    shape, dtype = probe.observation_shape, np.dtype(probe.observation_dtype)
-    probe.close()
+    assert best_agent.input_shape is not None and best_agent.observation_dtype is not None
+    assert best_agent.action_names is not None
+    action_names = best_agent.action_names
+    shape, dtype = best_agent.input_shape[1:], best_agent.observation_dtype
 
     screens: np.ndarray | None
     game_steps: list[int] | None

@@ -7,6 +7,8 @@ import os
 from pathlib import Path
 from typing import Any
 
+from dqnlab import rundir
+
 EPISODE_FIELDS = ("step", "frames", "episode", "score", "steps", "epsilon", "wall_seconds")
 EVALUATION_FIELDS = (
     "step", "frames", "mean", "std", "episodes", "steps", "best_mean", "frames_per_second",
@@ -28,8 +30,11 @@ class RunLogger:
         self.run_dir = run_dir
         self._files = {}
         self._writers = {}
-        for name, fields in (("episodes", EPISODE_FIELDS), ("evaluations", EVALUATION_FIELDS)):
-            path = run_dir / f"{name}.csv"
+        files = (
+            ("episodes", rundir.episodes_path(run_dir), EPISODE_FIELDS),
+            ("evaluations", rundir.evaluations_path(run_dir), EVALUATION_FIELDS),
+        )
+        for name, path, fields in files:
             if resume_step is not None and path.exists():
                 _truncate_after(path, resume_step)
             new = not path.exists()
@@ -44,7 +49,7 @@ class RunLogger:
             from torch.utils.tensorboard import SummaryWriter
 
             self.tensorboard = SummaryWriter(
-                log_dir=str(run_dir / "tensorboard"),
+                log_dir=str(rundir.tensorboard_dir(run_dir)),
                 purge_step=None if resume_step is None else resume_step + 1,
             )
 

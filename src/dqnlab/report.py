@@ -34,17 +34,16 @@ import numpy as np
 from matplotlib.figure import Figure
 from matplotlib.ticker import FuncFormatter
 
-from dqnlab import checkpoints
-from dqnlab.config import FIELD_NAMES, RESUMABLE_CHANGES, Config
-from dqnlab.errors import DqnlabError
-from dqnlab.evaluate import (
-    CONFIG_FILE,
-    final_evaluation,
-    final_evaluation_record,
-    load_final_evaluation,
-    load_run_config,
-    save_final_evaluation,
+from dqnlab import rundir
+from dqnlab.config import (
+    DEFAULT_EVALUATION_SEED,
+    FIELD_NAMES,
+    RESUMABLE_CHANGES,
+    Config,
+    setting_text,
 )
+from dqnlab.errors import DqnlabError
+from dqnlab.evaluate import final_evaluation, final_evaluation_record
 from dqnlab.logs import read_csv
 
 if TYPE_CHECKING:
@@ -67,7 +66,6 @@ SEED_PAPER_SCORES: dict[str, tuple[float, float]] = {
 # the number of final-evaluation games (a sample size, also in the table).
 NOT_GROUPED = ("seed", *RESUMABLE_CHANGES, "final_eval_episodes")
 ALL_EQUAL = "all settings equal"
-DEFAULT_EVALUATION_SEED = 12345  # `dqnlab evaluate`'s default --seed
 BASELINES = ("human", "human_nature")
 RESULTS_MD, RESULTS_CSV, SUMMARY_CSV = "results.md", "results.csv", "summary.csv"
 Q_VALUES_DIR = "q-values"
@@ -145,13 +143,13 @@ def find_runs(paths: Sequence[Path]) -> list[Path]:
     subdirectories (one level down) are runs, in natural order (s2 before s10)."""
     found: list[Path] = []
     for path in paths:
-        if (path / CONFIG_FILE).is_file():
+        if rundir.is_run_dir(path):
             found.append(path)
         elif path.is_dir():
-            children = [child for child in path.iterdir() if (child / CONFIG_FILE).is_file()]
+            children = [child for child in path.iterdir() if rundir.is_run_dir(child)]
             if not children:
                 raise DqnlabError(
-                    f"{path} is neither a dqnlab run directory (no {CONFIG_FILE}) nor a "
+                    f"{path} is neither a dqnlab run directory (no {rundir.CONFIG_FILE}) nor a "
                     "directory of runs (none of its subdirectories has one)"
                 )
             found.extend(sorted(children, key=lambda child: _natural_key(child.name)))
@@ -168,9 +166,9 @@ def _natural_key(name: str) -> list[Any]:
 
 
 def load_run(run_dir: Path) -> RunResults:
-    config = load_run_config(run_dir)
+    config = rundir.load_run_config(run_dir)
     evaluations = []
-    path = run_dir / "evaluations.csv"
+    path = rundir.evaluations_path(run_dir)
     for row in read_csv(path) if path.is_file() else []:
         try:
             evaluations.append(
@@ -180,16 +178,7 @@ def load_run(run_dir: Path) -> RunResults:
             )
         except (TypeError, ValueError):  # a line torn by a killed run: fields missing
             continue
-    return RunResults(run_dir, config, evaluations, load_final_evaluation(run_dir))
-
-
-def best_network_step(run_dir: Path) -> int | None:
-    """The training step of the run's best network, None if it has none yet."""
-    path = run_dir / "checkpoints" / "best.pt"
-    if not path.is_file():
-        return None
-    step = checkpoints.load(path).get("step")
-    return int(step) if step is not None else None
+    return RunResults(run_dir, config, evaluations, rundir.load_final_evaluation(run_dir))
 
 
 def best_network_evaluator(
@@ -202,7 +191,7 @@ def best_network_evaluator(
     def evaluate(run_dir: Path) -> dict[str, Any]:
         result, network = final_evaluation(run_dir, "best", episodes, seed, device)
         record = final_evaluation_record(result, network.config, network.path, network.step, seed)
-        save_final_evaluation(run_dir, record)
+        rundir.save_final_evaluation(run_dir, record)
         return record
 
     return evaluate
@@ -238,15 +227,6 @@ def label_keys(runs: Sequence[RunResults]) -> list[str]:
             if grouped and len({repr(values[name]) for values in settings}) > 1:
                 differing.add(name)
     return [name for name in FIELD_NAMES if name in differing]
-
-
-def setting_text(value: Any) -> str:
-    """A setting's value as TOML and `--set` write it."""
-    if isinstance(value, bool):
-        return "true" if value else "false"
-    if isinstance(value, (list, tuple)):
-        return "[" + ", ".join(setting_text(v) for v in value) + "]"
-    return str(value)
 
 
 def group_runs(runs: Sequence[RunResults]) -> list[Group]:
@@ -682,11 +662,11 @@ def inspect_report_runs(
     taken: set[str] = set()
     for group in report.groups:
         for run in group.runs:
-            checkpoints_dir = run.run_dir / "checkpoints"
-            if not (checkpoints_dir / "best.pt").is_file():
+            if not rundir.network_path(run.run_dir, "best").is_file():
                 report.notes.append(f"{run.run_dir}: no best network yet: no Q-value figure")
                 continue
-            names = ["best", "worst"] if (checkpoints_dir / "worst.pt").is_file() else ["best"]
+            has_worst = rundir.network_path(run.run_dir, "worst").is_file()
+            names = ["best", "worst"] if has_worst else ["best"]
             if names == ["best"]:
                 report.notes.append(
                     f"{run.run_dir}: no worst network (worst.pt is kept from the evaluations "
@@ -729,7 +709,7 @@ def _complete_final_evaluations(
     older best network (the run trained on after it was played)."""
     evaluated = []
     for run in runs:
-        best_step = best_network_step(run.run_dir)
+        best_step = rundir.network_step(run.run_dir, "best")
         saved = run.final_evaluation
         saved_step = saved.get("checkpoint_step") if saved is not None else None
         stale = saved_step is not None and best_step is not None and saved_step != best_step
