@@ -102,8 +102,11 @@ def test_sync_target_copies_weights(nature) -> None:
 
 def _reference_updates(network: nn.Module, batches, config, steps: int) -> list[torch.Tensor]:
     """The Nature DQN update written out plainly: default memory layout, F.huber_loss
-    summed over the batch, autograd, and DeepMind's RMSProp equations (NeuralQLearner.lua)."""
-    online = copy.deepcopy(network).to(memory_format=torch.contiguous_format)
+    summed over the batch, autograd, and DeepMind's RMSProp equations (NeuralQLearner.lua),
+    in float64: the exact answer that a float32 update approaches up to its rounding (a
+    float32 reference would carry rounding of its own, larger than the agent's with some
+    CPUs' convolution kernels)."""
+    online = copy.deepcopy(network).to(memory_format=torch.contiguous_format).double()
     target = copy.deepcopy(online)
     params = list(online.parameters())
     grad_avgs = [torch.zeros_like(p) for p in params]
@@ -111,15 +114,16 @@ def _reference_updates(network: nn.Module, batches, config, steps: int) -> list[
     decay, lr, eps = config.rmsprop_decay, config.learning_rate, config.rmsprop_epsilon
 
     def q_values(net: nn.Module, frames: np.ndarray) -> torch.Tensor:
-        return net.head(net.features(torch.from_numpy(frames).float() / 255.0))
+        return net.head(net.features(torch.from_numpy(frames).double() / 255.0))
 
     for batch in batches[:steps]:
         actions = torch.from_numpy(batch.actions)
         q_taken = q_values(online, batch.observations)[torch.arange(len(actions)), actions]
         with torch.no_grad():
             next_q = q_values(target, batch.next_observations).max(dim=1).values
-            not_terminal = 1.0 - torch.from_numpy(batch.terminals)
-            q_target = torch.from_numpy(batch.rewards) + config.discount * not_terminal * next_q
+            not_terminal = 1.0 - torch.from_numpy(batch.terminals).double()
+            rewards = torch.from_numpy(batch.rewards).double()
+            q_target = rewards + config.discount * not_terminal * next_q
         loss = F.huber_loss(q_taken, q_target, delta=config.td_error_clip, reduction="sum")
         gradients = torch.autograd.grad(loss, params)
         with torch.no_grad():
@@ -166,7 +170,7 @@ def test_update_matches_a_plain_reference_implementation(
     assert loss.shape == () and not loss.requires_grad
     assert agent.updates == 4
     for actual, reference in zip(agent.online.parameters(), expected, strict=True):
-        torch.testing.assert_close(actual, reference, rtol=1e-5, atol=1e-8)
+        torch.testing.assert_close(actual.double(), reference, rtol=1e-5, atol=1e-8)
     # The target network keeps the initial weights until sync_target.
     for kept, start in zip(agent.target.parameters(), initial, strict=True):
         assert torch.equal(kept, start)

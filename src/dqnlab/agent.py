@@ -127,9 +127,9 @@ class Agent:
         """One gradient step on a sampled minibatch; returns the loss (not synchronised)."""
         device = self.device
         self.online.train()
-        # Zeroed in place, not set to None: fresh 6.7 MB of gradients every update made
-        # the C allocator return memory and fault it back in, which cost more (2 ms)
-        # than the two passes over the gradients that set_to_none=True saves.
+        # Zeroed in place, not set to None: fresh gradients every update made the C
+        # allocator return memory and fault it back in, which cost more than the two
+        # passes over the gradients that set_to_none=True saves.
         self.optimizer.zero_grad(set_to_none=False)
         if batch.window is not None:  # the shared frames cross to the device once
             window = _on_device(batch.window, device)

@@ -494,8 +494,8 @@ def resolve_device(name: str):  # noqa: ANN201 - torch is imported only when nee
 
 def _keep_freed_memory() -> None:
     """Ask glibc to keep freed memory instead of returning it to the system: PyTorch's
-    per-update temporaries were otherwise faulted in again every update (500-3,000 page
-    faults, 1.5-5 ms of a ~22 ms update on 2 CPU cores). Best effort: glibc only."""
+    per-update temporaries were otherwise faulted in again every update, thousands of
+    page faults a noticeable part of the update on CPU. Best effort: glibc only."""
     if sys.platform != "linux":
         return
     try:

@@ -101,7 +101,7 @@ class Config:
     total_steps: int = _setting(50_000_000, "Training budget in agent steps")
     # Speed (no change of results beyond float rounding).
     compile_update: bool = _setting(
-        False, "torch.compile the update (needs a C++ compiler; ~25 s once; ~13% faster on CPU)"
+        False, "torch.compile the update (needs a C++ compiler; compiles once, at the first update)"
     )
     replay_storage: str = _setting(
         "auto",

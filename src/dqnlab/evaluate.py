@@ -10,8 +10,8 @@ whole games, so `play_games` plays them on several environments in lockstep, act
 in two halves with a batched forward pass each, the environments stepped by worker
 processes (`dqnlab.envs.pool`), one per core, one half while the player acts for the
 other. Processes, not threads: ale-py holds the GIL while it emulates
-(ALEInterface.act; a thread emulating 3,000 frames in one call stalls every other Python
-thread for those 170 ms), so threads stepping Atari games take turns on one core. OpenCV
+(ALEInterface.act: a thread emulating a no-op start stalls every other Python thread
+until it returns), so threads stepping Atari games take turns on one core. OpenCV
 releases it, but emulation is most of a step.
 """
 
@@ -201,9 +201,8 @@ def default_workers(config: Config) -> int:
 
 def default_num_envs(episodes: int) -> int:
     """All the games at once, up to 32: each environment plays one game, so the evaluation
-    lasts as long as its longest game, and the forward passes have the largest batches.
-    Measured on 2 shared cores (Breakout, untrained network, 30 games): 30 environments
-    6,600 frames/s, 16 5,800-6,000, 8 4,900-5,700, the sequential `play` 2,200-2,500."""
+    lasts as long as its longest game, and the forward passes have the largest batches
+    (more environments were faster at every count tried; `dqnlab bench` measures it)."""
     return min(episodes, 32)
 
 

@@ -11,7 +11,9 @@ from typing import Any
 
 import torch
 
-OPTIMIZER_NAMES: tuple[str, ...] = ("deepmind_rmsprop", "rmsprop", "adam")
+from dqnlab.config import CHOICES
+
+OPTIMIZER_NAMES = CHOICES["optimizer"]  # the configuration's list
 
 
 class DeepMindRMSprop(torch.optim.Optimizer):
@@ -68,10 +70,10 @@ class DeepMindRMSprop(torch.optim.Optimizer):
             with torch.enable_grad():
                 loss = closure()
 
-        # A plain per-parameter loop: torch._foreach_* ops measured no faster on CPU for
-        # the Nature network's ten tensors, and this reads like the Lua code. Its eight
-        # passes over memory are what costs (3.4 ms a step on one core); torch.compile
-        # fuses them into one (0.9 ms): Agent(compile_update=True).
+        # A plain per-parameter loop: torch._foreach_* ops were no faster on CPU for the
+        # Nature network's ten tensors, and this reads like the Lua code. Its eight
+        # passes over memory are what costs; torch.compile fuses them into one:
+        # Agent(compile_update=True).
         for group in self.param_groups:
             lr: float = group["lr"]
             decay: float = group["decay"]

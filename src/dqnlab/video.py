@@ -43,8 +43,8 @@ DEFAULT_RENDER_FPS = 30  # for a Gymnasium env whose metadata gives no render_fp
 # at half resolution: at 1x the colour of one-pixel details (Breakout's bricks) bleeds,
 # 1% of pixel values off by 36 or more; at 2x by 3 or less, for 10% more bytes.
 ATARI_MP4_SCALE = 2
-# x264 constant rate factor: visually lossless. Measured: a 3,056-frame game of Pong takes
-# 130 kB (so about 0.8 MB for 18,000 frames), 13,300 frames of Enduro (it scrolls) 3.4 MB.
+# x264 constant rate factor: visually lossless, and a 5-minute game is a few MB at most
+# (the README gives file sizes).
 MP4_CRF = 18
 GIF_MAX_FPS = 25
 

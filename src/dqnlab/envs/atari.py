@@ -33,13 +33,16 @@ import cv2
 import numpy as np
 from ale_py import Action, ALEInterface, LoggerMode, roms
 
+from dqnlab.config import CHOICES
 from dqnlab.errors import EnvError
 
 RAW_FRAME_SHAPE = (210, 160, 3)
-FRAME_POOLINGS = ("max_rgb", "max_gray", "none")
-GRAYSCALES = ("luminance", "ale")
-BYTE_CONVERSIONS = ("truncate", "round")
+# The accepted values are the configuration's (`config.CHOICES`).
+FRAME_POOLINGS = CHOICES["frame_pooling"]
+GRAYSCALES = CHOICES["grayscale"]
+BYTE_CONVERSIONS = CHOICES["byte_conversion"]
 _INTERPOLATIONS = {"area": cv2.INTER_AREA, "bilinear": cv2.INTER_LINEAR}
+assert set(_INTERPOLATIONS) == set(CHOICES["resize_interpolation"])
 # ITU-R BT.601 luminance, as torch's image.rgb2y in the Lua code (a 1x3 matrix for cv2).
 _LUMINANCE = np.array([[0.299, 0.587, 0.114]], dtype=np.float32)
 # ALE's getScreenGrayscale: rounded 0.2989 R + 0.5870 G + 0.1140 B (checked on real frames).

@@ -5,8 +5,8 @@ module holds the environments' side: what each environment did in its last step,
 in shared memory, and the worker processes that step them, one per core.
 
 This module and what it imports must not import torch: the forkserver and every worker
-import it, and torch would cost each of them about 2 s to import and hundreds of MB
-resident (measured: workers of 325 MB resident, a forkserver of 554 MB).
+import it, and torch would cost each of them seconds to import and hundreds of MB
+resident.
 """
 
 from __future__ import annotations
