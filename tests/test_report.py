@@ -472,7 +472,7 @@ def test_a_directory_that_is_neither_run_nor_sweep_is_refused(
 
 
 def test_unsafe_game_names_make_safe_file_names() -> None:
-    from dqnlab.report import _file_stem
+    from dqnlab.report.write import _file_stem
 
     taken: set[str] = set()
     assert _file_stem("ALE/Pong-v5", taken) == "curves-ALE_Pong-v5"
@@ -515,7 +515,7 @@ def test_report_inspects_each_runs_best_against_worst(cartpole_copy: Path, tmp_p
 
 
 def test_runs_of_the_same_name_get_their_own_q_value_folders(tmp_path: Path) -> None:
-    from dqnlab.report import _unique_name
+    from dqnlab.report.write import _unique_name
 
     taken: set[str] = set()
     names = [_unique_name(tmp_path / parent / "s0", taken) for parent in ("a", "b", "b")]
