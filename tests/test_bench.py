@@ -7,7 +7,7 @@ import torch
 
 from dqnlab.bench import run_benchmark
 from dqnlab.config import resolve_config
-from dqnlab.evaluate import default_workers
+from dqnlab.lockstep import default_workers
 
 
 def test_benchmark_figures_on_a_small_replay() -> None:

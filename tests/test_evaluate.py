@@ -16,7 +16,9 @@ from dqnlab.agent import Agent, build_agent
 from dqnlab.config import Config, derive_seeds, resolve_config
 from dqnlab.envs import Environment, make_env
 from dqnlab.errors import DqnlabError
-from dqnlab.evaluate import EvaluationResult, final_evaluation, play, play_games
+from dqnlab.evaluate import final_evaluation
+from dqnlab.lockstep import play_games
+from dqnlab.play import EvaluationResult, play
 from dqnlab.replay import FrameHistory
 
 EPSILON = 0.05

@@ -16,7 +16,8 @@ from dqnlab import video
 from dqnlab.config import Config, derive_seeds, resolve_config
 from dqnlab.envs import make_env
 from dqnlab.errors import DqnlabError
-from dqnlab.evaluate import play, play_games
+from dqnlab.lockstep import play_games
+from dqnlab.play import play
 from dqnlab.video import (
     ATARI_MP4_SCALE,
     choose_video_format,

@@ -20,8 +20,9 @@ import torch
 from dqnlab import __version__
 from dqnlab.config import resolve_config
 from dqnlab.errors import DqnlabError
-from dqnlab.evaluate import play, play_games
+from dqnlab.lockstep import play_games
 from dqnlab.peers import peer_available, run_sb3_dqn
+from dqnlab.play import play
 from dqnlab.replay import ReplayMemory
 from dqnlab.state import TIMED_PARTS, TrainingState, replay_device
 

@@ -10,7 +10,7 @@ later inspection can take again to compare other networks on exactly those frame
 
 Frames are picked from the first game the best network plays under the evaluation
 protocol (`eval_epsilon`, random no-op starts, games of at most
-`final_eval_max_episode_frames`), stacked as `evaluate.play` stacks them, bounded to the
+`final_eval_max_episode_frames`), stacked as `play.play` stacks them, bounded to the
 first `max_game_steps` agent steps: the game is played once to learn its length, then
 replayed with the same actions to keep the chosen steps' inputs and screens (holding
 every screen of a long game would take 100 kB a step).
@@ -37,8 +37,8 @@ from dqnlab.config import Config, derive_seeds
 from dqnlab.envs import Environment, make_env
 from dqnlab.envs.atari import AtariEnv
 from dqnlab.errors import DqnlabError
-from dqnlab.evaluate import EvaluationResult, play
 from dqnlab.logs import read_csv
+from dqnlab.play import EvaluationResult, play
 
 CHECKPOINT_NAMES = ("best", "worst")
 DEFAULT_FRAMES = 8
@@ -256,7 +256,7 @@ def _play_first_game(
     choose: Callable[[int, np.ndarray], int],
 ) -> EvaluationResult:
     """The first game of `env`, for at most `max_steps` agent steps, each action
-    `choose(step, stacked_input)` (`evaluate.play`); `env` is closed afterwards."""
+    `choose(step, stacked_input)` (`play.play`); `env` is closed afterwards."""
     try:
         return play(agent, env, config.history_length, 0.0, max_steps=max_steps, max_episodes=1,
                     choose=choose)  # fmt: skip

@@ -22,7 +22,7 @@ from dqnlab.agent import build_agent, epsilon_at
 from dqnlab.config import Config, derive_seeds
 from dqnlab.envs import make_env
 from dqnlab.errors import DqnlabError, ResourceError
-from dqnlab.evaluate import EvaluationResult, play
+from dqnlab.play import EvaluationResult, play
 from dqnlab.replay import FrameHistory, ReplayMemory, check_memory
 
 TIMED_PARTS = ("env", "act", "store", "sample", "update")

@@ -28,8 +28,8 @@ from dqnlab import rundir
 from dqnlab.checkpoints import CheckpointStore, written_slots
 from dqnlab.config import Config, config_fingerprint
 from dqnlab.errors import DqnlabError
-from dqnlab.evaluate import EvaluationResult
 from dqnlab.logs import RunLogger
+from dqnlab.play import EvaluationResult
 from dqnlab.state import TrainingState, check_disk
 
 PROGRESS_PERIOD_STEPS = 1000  # NaN checks, TensorBoard scalars and the progress bar

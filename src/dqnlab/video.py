@@ -34,7 +34,7 @@ from dqnlab.envs import is_atari, make_env
 from dqnlab.envs.atari import AtariEnv
 from dqnlab.envs.generic import GymnasiumEnv
 from dqnlab.errors import DqnlabError
-from dqnlab.evaluate import EvaluationResult, play
+from dqnlab.play import EvaluationResult, play
 
 VIDEO_FORMATS = ("auto", "mp4", "gif")
 ATARI_FPS = 60  # NTSC frame rate of the console, one emulator frame per video frame

@@ -1,6 +1,6 @@
 """Environments in lockstep, stepped in this process or by worker processes.
 
-The final evaluation (`evaluate.play_games`) acts for many environments at once; this
+The final evaluation (`lockstep.play_games`) acts for many environments at once; this
 module holds the environments' side: what each environment did in its last step, laid out
 in shared memory, and the worker processes that step them, one per core.
 
