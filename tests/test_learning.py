@@ -12,9 +12,9 @@ import pytest
 import torch
 
 from dqnlab.config import resolve_config
-from dqnlab.evaluate import final_evaluation
-from dqnlab.rundir import prepare_run_dir
-from dqnlab.train import train
+from dqnlab.run.evaluate import final_evaluation
+from dqnlab.run.rundir import prepare_run_dir
+from dqnlab.run.train import train
 
 
 @pytest.mark.slow

@@ -56,7 +56,7 @@ def train(
     """Train a DQN; writes config, CSV logs, TensorBoard events and checkpoints to the run dir."""
     from dqnlab.config import parse_overrides, resolve_config
     from dqnlab.envs import check_env_name, is_atari
-    from dqnlab.rundir import default_run_dir, prepare_run_dir
+    from dqnlab.run.rundir import default_run_dir, prepare_run_dir
 
     check_env_name(env)
     preset = preset or ("nature" if is_atari(env) else "classic")
@@ -83,7 +83,7 @@ def resume(
     """Carry on a run from its newest complete checkpoint, exactly where it stopped."""
     import dataclasses
 
-    from dqnlab.rundir import load_run_config, update_run_config
+    from dqnlab.run.rundir import load_run_config, update_run_config
 
     config = load_run_config(run_dir)
     if steps is not None:
@@ -95,7 +95,7 @@ def resume(
 
 
 def _run(config, run_dir: Path, device, progress: bool, resume: bool) -> None:  # noqa: ANN001
-    from dqnlab.train import train as run_training
+    from dqnlab.run.train import train as run_training
 
     result = run_training(config, run_dir, device, progress=progress, resume=resume)
     if result.interrupted:
@@ -155,8 +155,8 @@ def evaluate(
     are played one after another on one emulator and filmed from the raw screens (every
     emulator frame, 60 frames/s); without it they are spread over every core (other
     games, the same protocol)."""
-    from dqnlab.evaluate import final_evaluation, final_evaluation_record
-    from dqnlab.rundir import load_final_evaluation, record_final_evaluation
+    from dqnlab.run.evaluate import final_evaluation, final_evaluation_record
+    from dqnlab.run.rundir import load_final_evaluation, record_final_evaluation
 
     if video is None:
         result, network = final_evaluation(
@@ -196,8 +196,8 @@ def _filmed_evaluation(  # noqa: ANN202
     video_format: str,
 ):
     """`final_evaluation`'s games played on one environment (as with num_envs=1) and filmed."""
-    from dqnlab.evaluate import load_evaluated_agent
-    from dqnlab.video import VIDEO_FORMATS, record_games
+    from dqnlab.run.evaluate import load_evaluated_agent
+    from dqnlab.tools.video import VIDEO_FORMATS, record_games
 
     if video_format not in VIDEO_FORMATS:
         raise DqnlabError(f"--video-format {video_format!r}: choose {', '.join(VIDEO_FORMATS)}")
@@ -243,7 +243,7 @@ def bench(
     ] = False,
 ) -> None:
     """Measure training and evaluation throughput, the update, and replay memory use."""
-    from dqnlab.bench import run_benchmark
+    from dqnlab.tools.bench import run_benchmark
 
     figures = run_benchmark(
         env,
@@ -306,10 +306,16 @@ def ablate(
     * `dqnlab ablate --env breakout --vary optimizer+learning_rate=deepmind_rmsprop+0.00025,rmsprop+0.00005`
 
     Running the same command again skips finished runs and resumes interrupted ones."""
-    from dqnlab.ablate import check_sweep_dir, default_jobs, parse_variation, plan_sweep, run_sweep
     from dqnlab.config import parse_overrides
     from dqnlab.envs import check_env_name, is_atari
-    from dqnlab.rundir import default_sweep_dir
+    from dqnlab.run.rundir import default_sweep_dir
+    from dqnlab.tools.ablate import (
+        check_sweep_dir,
+        default_jobs,
+        parse_variation,
+        plan_sweep,
+        run_sweep,
+    )
 
     check_env_name(env)
     variations = [parse_variation(text) for text in vary]
@@ -372,7 +378,7 @@ def report(
     if episodes is not None and episodes <= 0:
         raise DqnlabError(f"--episodes {episodes} must be positive")
     if out is None:
-        from dqnlab.rundir import is_run_dir
+        from dqnlab.run.rundir import is_run_dir
 
         one_sweep = len(run_dirs) == 1 and not is_run_dir(run_dirs[0])
         out = run_dirs[0] / "report" if one_sweep else Path("report")
@@ -382,7 +388,7 @@ def report(
 def _report(
     run_dirs: list[Path], out: Path, episodes: int | None, device: str, frames: int = 4
 ) -> None:
-    from dqnlab.report import best_network_evaluator, format_table, write_report
+    from dqnlab.tools.report import best_network_evaluator, format_table, write_report
 
     torch_device = resolve_device(device)
     written = write_report(
@@ -434,8 +440,8 @@ def inspect(
     overview.png, q_values.csv and the inputs. worst is the network of the lowest
     periodic evaluation after the first quarter of training; steps need
     eval_networks_kept = "all"."""
-    from dqnlab.inspection import inspect_run, parse_checkpoints
-    from dqnlab.rundir import inspect_dir
+    from dqnlab.run.rundir import inspect_dir
+    from dqnlab.tools.inspection import inspect_run, parse_checkpoints
 
     if frames <= 0:
         raise DqnlabError(f"--frames {frames} must be positive")

@@ -1,0 +1,234 @@
+"""The DQN agent: epsilon-greedy acting, the Q-learning update and the target network."""
+
+from __future__ import annotations
+
+import copy
+from collections.abc import Callable, Sequence
+from typing import Any
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from dqnlab.algorithm.networks import build_network
+from dqnlab.algorithm.optim import build_optimizer
+from dqnlab.algorithm.replay import Batch
+from dqnlab.config import Config
+from dqnlab.envs import Environment
+
+
+def epsilon_at(step: int, config: Config) -> float:
+    """Exploration rate for the action after `step` agent steps.
+
+    `epsilon_start` during replay start (1.0: the uniform random policy), then linear to
+    `epsilon_end` over `epsilon_decay_steps` (Lua NeuralQLearner:perceive, L369-371).
+    """
+    steps_learning = max(0, step - config.replay_start_steps)
+    if config.epsilon_decay_steps == 0:
+        return config.epsilon_end if steps_learning > 0 else config.epsilon_start
+    progress = min(1.0, steps_learning / config.epsilon_decay_steps)
+    return config.epsilon_start + (config.epsilon_end - config.epsilon_start) * progress
+
+
+def td_loss(
+    online: nn.Module,
+    target: nn.Module,
+    observations: torch.Tensor,
+    actions: torch.Tensor,
+    rewards: torch.Tensor,
+    terminals: torch.Tensor,
+    next_observations: torch.Tensor,
+    discount: float,
+    td_error_clip: float,
+    reduction: str,
+) -> torch.Tensor:
+    """Q-learning loss of one minibatch.
+
+    The Huber loss with threshold `td_error_clip` has the clipped TD error as its gradient,
+    which is exactly the Lua code's clip_delta; summed over the batch as the Lua code
+    accumulates gradients (its RMSProp epsilon assumes that scale).
+    """
+    q_taken = online(observations).gather(1, actions.unsqueeze(1)).squeeze(1)
+    with torch.no_grad():
+        next_q = target(next_observations).max(dim=1).values
+        q_target = rewards + discount * (1.0 - terminals) * next_q
+    if td_error_clip > 0:
+        return F.huber_loss(q_taken, q_target, delta=td_error_clip, reduction=reduction)
+    squared = 0.5 * (q_target - q_taken) ** 2
+    return squared.sum() if reduction == "sum" else squared.mean()
+
+
+class Agent:
+    """Owns the online and target networks and the optimizer; acts and learns."""
+
+    def __init__(
+        self,
+        network: nn.Module,
+        num_actions: int,
+        config: Config,
+        device: torch.device,
+        seed: int,
+        compile_update: bool = False,
+    ) -> None:
+        """`compile_update` (opt-in): compile the loss with its backward pass and the
+        optimizer step with `torch.compile`. The same arithmetic, fused into fewer passes
+        over memory, so results agree up to float rounding; the first update then takes
+        tens of seconds to compile and needs a C++ compiler (on CPU)."""
+        self.config = config
+        self.device = device
+        self.num_actions = num_actions
+        self.online = network.to(device)
+        self.target = copy.deepcopy(self.online).requires_grad_(False)
+        self.optimizer = build_optimizer(
+            config.optimizer,
+            self.online.parameters(),
+            learning_rate=config.learning_rate,
+            rmsprop_decay=config.rmsprop_decay,
+            rmsprop_epsilon=config.rmsprop_epsilon,
+            adam_epsilon=config.adam_epsilon,
+        )
+        self.rng = np.random.default_rng(seed)
+        self.updates = 0
+        # What the network takes and chooses among, where known (`agent_for_input` sets it).
+        self.input_shape: tuple[int, ...] | None = None
+        self.observation_dtype: np.dtype | None = None
+        self.action_names: list[str] | None = None
+        self._optimizer_step: Callable[[], object] = self.optimizer.step
+        if compile_update:
+            self._loss_and_backward = torch.compile(self._loss_and_backward)  # type: ignore[method-assign]
+            self._optimizer_step = torch.compile(self.optimizer.step)
+
+    def act(self, stacked_observation: np.ndarray, epsilon: float) -> int:
+        """Epsilon-greedy on one stacked observation (`epsilon_greedy`)."""
+        return self.epsilon_greedy(epsilon, lambda: self.q_values(stacked_observation[None])[0])
+
+    def epsilon_greedy(
+        self, epsilon: float, q_values: np.ndarray | Callable[[], np.ndarray]
+    ) -> int:
+        """A uniform random action with probability `epsilon`, else the action of the highest
+        Q-value, ties going to a random one of them (Lua NeuralQLearner:greedy). `q_values`
+        may be a function, called only when the choice is greedy (a random action needs no
+        forward pass)."""
+        if self.rng.random() < epsilon:
+            return int(self.rng.integers(self.num_actions))
+        values = q_values() if callable(q_values) else q_values
+        best = np.flatnonzero(values == values.max())
+        return int(best[0] if len(best) == 1 else self.rng.choice(best))
+
+    def q_values(self, stacked_observations: np.ndarray) -> np.ndarray:
+        """Q-values of the online network in eval mode (matters for dropout/batch norm)."""
+        self.online.eval()
+        with torch.inference_mode():
+            inputs = torch.from_numpy(stacked_observations).to(self.device)
+            return self.online(inputs).float().cpu().numpy()
+
+    def update(self, batch: Batch) -> torch.Tensor:
+        """One gradient step on a sampled minibatch; returns the loss (not synchronised)."""
+        device = self.device
+        self.online.train()
+        # Zeroed in place, not set to None: fresh gradients every update made the C
+        # allocator return memory and fault it back in, which cost more than the two
+        # passes over the gradients that set_to_none=True saves.
+        self.optimizer.zero_grad(set_to_none=False)
+        if batch.window is not None:  # the shared frames cross to the device once
+            window = _on_device(batch.window, device)
+            history = window.shape[1] - 1
+            observations, next_observations = window[:, :history], window[:, 1:]
+        else:
+            observations = _on_device(batch.observations, device)
+            next_observations = _on_device(batch.next_observations, device)
+        loss = self._loss_and_backward(
+            observations,
+            torch.from_numpy(batch.actions).to(device),
+            torch.from_numpy(batch.rewards).to(device),
+            torch.from_numpy(batch.terminals).to(device),
+            next_observations,
+        )
+        self._optimizer_step()
+        self.updates += 1
+        return loss
+
+    def _loss_and_backward(
+        self,
+        observations: torch.Tensor,
+        actions: torch.Tensor,
+        rewards: torch.Tensor,
+        terminals: torch.Tensor,
+        next_observations: torch.Tensor,
+    ) -> torch.Tensor:
+        loss = td_loss(
+            self.online,
+            self.target,
+            observations,
+            actions,
+            rewards,
+            terminals,
+            next_observations,
+            self.config.discount,
+            self.config.td_error_clip,
+            self.config.loss_reduction,
+        )
+        loss.backward()
+        return loss.detach()
+
+    def sync_target(self) -> None:
+        self.target.load_state_dict(self.online.state_dict())
+
+    def state_dict(self) -> dict[str, Any]:
+        return {
+            "online": self.online.state_dict(),
+            "target": self.target.state_dict(),
+            "optimizer": self.optimizer.state_dict(),
+            "rng": self.rng.bit_generator.state,
+            "updates": self.updates,
+        }
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        self.online.load_state_dict(state["online"])
+        self.target.load_state_dict(state["target"])
+        self.optimizer.load_state_dict(state["optimizer"])
+        self.rng.bit_generator.state = state["rng"]
+        self.updates = int(state["updates"])
+
+
+def _on_device(frames: np.ndarray | torch.Tensor, device: torch.device) -> torch.Tensor:
+    """A batch's frames as a tensor on `device` (a no-op for frames already there)."""
+    tensor = frames if isinstance(frames, torch.Tensor) else torch.from_numpy(frames)
+    return tensor.to(device)
+
+
+def is_image_observation(observation_shape: tuple[int, ...], dtype: np.dtype) -> bool:
+    return np.dtype(dtype) == np.uint8 and len(observation_shape) >= 2
+
+
+def build_agent(config: Config, env: Environment, device: torch.device, seed: int) -> Agent:
+    """The configured network for this environment, wrapped in an agent."""
+    input_shape = (config.history_length, *env.observation_shape)
+    return agent_for_input(
+        config, input_shape, env.observation_dtype, env.action_names, device, seed
+    )
+
+
+def agent_for_input(
+    config: Config,
+    input_shape: tuple[int, ...],
+    observation_dtype: np.dtype,
+    action_names: Sequence[str],
+    device: torch.device,
+    seed: int,
+) -> Agent:
+    """The configured network for inputs of `input_shape` (history, *observation shape)
+    and one Q-value per action of `action_names`, wrapped in an agent."""
+    network = build_network(
+        config.network,
+        input_shape,
+        len(action_names),
+        is_image_observation(input_shape[1:], observation_dtype),
+        config.mlp_hidden_sizes,
+    )
+    agent = Agent(network, len(action_names), config, device, seed, config.compile_update)
+    agent.input_shape = tuple(input_shape)
+    agent.observation_dtype = np.dtype(observation_dtype)
+    agent.action_names = list(action_names)
+    return agent

@@ -1,0 +1,105 @@
+"""What a run writes while it trains: CSV files of episodes and evaluations, TensorBoard."""
+
+from __future__ import annotations
+
+import csv
+import os
+from pathlib import Path
+from typing import Any
+
+from dqnlab.run import rundir
+
+EPISODE_FIELDS = ("step", "frames", "episode", "score", "steps", "epsilon", "wall_seconds")
+EVALUATION_FIELDS = (
+    "step", "frames", "mean", "std", "episodes", "steps", "best_mean", "frames_per_second",
+    "wall_seconds",
+)  # fmt: skip
+
+
+class RunLogger:
+    """Appends rows to `episodes.csv` and `evaluations.csv` and scalars to TensorBoard.
+
+    `resume_step`: the step of the checkpoint a run resumes from (0: none, start over).
+    Rows and events logged after it (by the run that was killed) are dropped, since the
+    resumed run logs them again: no duplicates, no gaps.
+    """
+
+    def __init__(
+        self, run_dir: Path, tensorboard: bool = True, resume_step: int | None = None
+    ) -> None:
+        self.run_dir = run_dir
+        self._files = {}
+        self._writers = {}
+        files = (
+            ("episodes", rundir.episodes_path(run_dir), EPISODE_FIELDS),
+            ("evaluations", rundir.evaluations_path(run_dir), EVALUATION_FIELDS),
+        )
+        for name, path, fields in files:
+            if resume_step is not None and path.exists():
+                _truncate_after(path, resume_step)
+            new = not path.exists()
+            handle = path.open("a", newline="")
+            writer = csv.DictWriter(handle, fieldnames=fields)
+            if new:
+                writer.writeheader()
+            self._files[name] = handle
+            self._writers[name] = writer
+        self.tensorboard = None
+        if tensorboard:
+            from torch.utils.tensorboard import SummaryWriter
+
+            self.tensorboard = SummaryWriter(
+                log_dir=str(rundir.tensorboard_dir(run_dir)),
+                purge_step=None if resume_step is None else resume_step + 1,
+            )
+
+    def episode(self, row: dict[str, Any]) -> None:
+        self._writers["episodes"].writerow(row)
+        if self.tensorboard:
+            self.tensorboard.add_scalar("train/episode_score", row["score"], row["step"])
+
+    def evaluation(self, row: dict[str, Any]) -> None:
+        self._writers["evaluations"].writerow(row)
+        self._files["evaluations"].flush()
+        if self.tensorboard:
+            self.tensorboard.add_scalar("eval/mean_score", row["mean"], row["step"])
+            self.tensorboard.add_scalar("eval/episodes", row["episodes"], row["step"])
+
+    def scalars(self, step: int, values: dict[str, float]) -> None:
+        if self.tensorboard:
+            for name, value in values.items():
+                self.tensorboard.add_scalar(name, value, step)
+
+    def flush(self) -> None:
+        """Everything logged so far reaches the disk (called before every checkpoint)."""
+        for handle in self._files.values():
+            handle.flush()
+            os.fsync(handle.fileno())
+        if self.tensorboard:
+            self.tensorboard.flush()
+
+    def close(self) -> None:
+        self.flush()
+        for handle in self._files.values():
+            handle.close()
+        if self.tensorboard:
+            self.tensorboard.close()
+
+
+def _truncate_after(path: Path, step: int) -> None:
+    """Keep the header and the rows whose step is at most `step`; drop a torn last line."""
+    lines = path.read_text().splitlines(keepends=True)
+    kept = lines[:1]
+    for line in lines[1:]:
+        if not line.endswith("\n"):
+            break  # half-written by a killed process
+        if int(line.split(",", 1)[0]) <= step:
+            kept.append(line)
+    temporary = path.with_name(path.name + ".tmp")
+    temporary.write_text("".join(kept))
+    os.replace(temporary, path)
+
+
+def read_csv(path: Path) -> list[dict[str, str]]:
+    with path.open(newline="") as handle:
+        return list(csv.DictReader(handle))

@@ -1,0 +1,267 @@
+"""The Nature DQN algorithm, one agent step at a time, and the state it runs on.
+
+Per step (Nature's Algorithm 1; DeepMind's Lua code with the same timings): act
+epsilon-greedily with the network just updated, repeat the action in the environment,
+store the transition, then every `update_period_steps` (once past `replay_start_steps`)
+take one gradient step, and every `target_update_steps` copy the online network into the
+target network. The training loop around it (`dqnlab.run.train`) evaluates, logs and saves.
+"""
+
+from __future__ import annotations
+
+import random
+import shutil
+from pathlib import Path
+from time import perf_counter
+from typing import Any
+
+import numpy as np
+import torch
+
+from dqnlab.algorithm.agent import build_agent, epsilon_at
+from dqnlab.algorithm.replay import FrameHistory, ReplayMemory, check_memory
+from dqnlab.config import Config, derive_seeds
+from dqnlab.envs import make_env
+from dqnlab.errors import DqnlabError, ResourceError
+from dqnlab.run.play import EvaluationResult, play
+
+TIMED_PARTS = ("env", "act", "store", "sample", "update")
+
+
+class TrainingDiverged(DqnlabError):
+    """The loss or the weights stopped being finite."""
+
+
+class TrainingState:
+    """Everything a run trains with: the training and evaluation environments, the agent,
+    the replay memory, the frame history and the step counter.
+
+    `advance()` is one agent step of the Nature algorithm; the training loop
+    (`dqnlab.run.train`) decides when to evaluate, log and save.
+    """
+
+    def __init__(
+        self, config: Config, device: torch.device, replay: ReplayMemory | None = None
+    ) -> None:
+        """`replay` replaces the configured replay memory (a benchmark brings a filled one)."""
+        self.config = config
+        seeds = derive_seeds(config.seed, 6)
+        random.seed(seeds[0])
+        torch.manual_seed(seeds[1])
+        self.env = make_env(config, training=True, seed=seeds[2])
+        self.eval_env = make_env(
+            config, training=False, seed=seeds[3], max_episode_frames=config.eval_max_episode_frames
+        )
+        self.agent = build_agent(config, self.env, device, seeds[4])
+        on_device = (
+            replay_device(config, device, self.env.observation_shape, self.env.observation_dtype)
+            if replay is None
+            else replay.device
+        )
+        self.replay = replay or ReplayMemory(
+            config.replay_capacity,
+            self.env.observation_shape,
+            self.env.observation_dtype,
+            config.history_length,
+            config.batch_size,
+            seeds[5],
+            device=on_device,
+            pin_memory=device.type == "cuda" and on_device is None,
+        )
+        self.history = FrameHistory(
+            config.history_length, self.env.observation_shape, self.env.observation_dtype
+        )
+        self.steps = 0
+        self.epsilon = epsilon_at(0, config)
+        self.game_score = 0.0  # raw score of the game in progress
+        self.game_steps = 0
+        self.loss_sum = torch.zeros((), device=device)  # summed on device: no sync per update
+        self.losses = 0
+        self.seconds = dict.fromkeys(TIMED_PARTS + ("total",), 0.0)
+        # On CPU reading the loss costs nothing, so a NaN is caught at its step; on a GPU it
+        # would synchronise every update, so the training loop checks periodically instead.
+        self.check_every_update = device.type == "cpu"
+        self.history.reset(self.env.reset())
+
+    def advance(self) -> tuple[float, int] | None:
+        """One agent step; returns (raw score, steps) of a game that just ended, else None.
+
+        The time of each part is added to `self.seconds` (a few clock reads per step).
+        """
+        config = self.config
+        seconds = self.seconds
+        self.steps += 1
+        step = self.steps
+        start = perf_counter()
+        self.epsilon = epsilon_at(step - 1, config)
+        action = self.agent.act(self.history.frames, self.epsilon)
+        acted = perf_counter()
+        observation, reward, terminated, truncated = self.env.step(action)
+        stepped = perf_counter()
+        clip = config.reward_clip
+        self.replay.add(
+            self.history.newest,
+            action,
+            max(-clip, min(clip, reward)) if clip else reward,
+            terminated,
+        )
+        self.game_score += reward
+        self.game_steps += 1
+        finished = None
+        reset_seconds = 0.0
+        if terminated or truncated:
+            self.replay.add_last(observation)
+            if self.env.game_ended:
+                finished = (self.game_score, self.game_steps)
+                self.game_score, self.game_steps = 0.0, 0
+            reset_start = perf_counter()
+            observation = self.env.reset()
+            reset_seconds = perf_counter() - reset_start
+            self.history.reset(observation)
+        else:
+            self.history.push(observation)
+        stored = perf_counter()
+        seconds["act"] += acted - start
+        seconds["env"] += stepped - acted + reset_seconds  # resets are environment time
+        seconds["store"] += stored - stepped - reset_seconds
+
+        if step > config.replay_start_steps and step % config.update_period_steps == 0:
+            batch = self.replay.sample()
+            sampled = perf_counter()
+            loss = self.agent.update(batch)
+            if self.check_every_update and not torch.isfinite(loss):
+                raise TrainingDiverged(
+                    f"the loss became NaN or infinite at step {step}: training stopped; the "
+                    "last complete checkpoint and the best network are kept as they were"
+                )
+            self.loss_sum += loss
+            self.losses += 1
+            updated = perf_counter()
+            seconds["sample"] += sampled - stored
+            seconds["update"] += updated - sampled
+        if step % config.target_update_steps == 0:
+            self.agent.sync_target()
+        seconds["total"] += perf_counter() - start
+        return finished
+
+    def evaluate(self) -> EvaluationResult:
+        """A periodic evaluation: `eval_steps` steps at `eval_epsilon`, finished games count."""
+        config = self.config
+        return play(
+            self.agent,
+            self.eval_env,
+            config.history_length,
+            config.eval_epsilon,
+            max_steps=config.eval_steps,
+        )
+
+    def mean_loss(self) -> float | None:
+        """Mean loss since the last call (one synchronisation), None if no update ran."""
+        if not self.losses:
+            return None
+        mean = float(self.loss_sum) / self.losses
+        self.loss_sum.zero_()
+        self.losses = 0
+        return mean
+
+    def state_dict(self) -> dict[str, Any]:
+        """Everything but the replay arrays (saved chunk by chunk, `replay.arrays`)."""
+        state = {
+            "steps": self.steps,
+            "epsilon": self.epsilon,
+            "game_score": self.game_score,
+            "game_steps": self.game_steps,
+            "loss_sum": self.loss_sum.detach().cpu(),
+            "losses": self.losses,
+            "agent": self.agent.state_dict(),
+            "replay": self.replay.state_dict(),
+            "env": self.env.state_dict(),
+            "eval_env": self.eval_env.state_dict(),
+            "history": torch.from_numpy(self.history.frames.copy()),
+            "python_random": random.getstate(),
+            "torch_random": torch.get_rng_state(),
+        }
+        if torch.cuda.is_available():
+            state["cuda_random"] = torch.cuda.get_rng_state_all()
+        return state
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        self.steps = int(state["steps"])
+        self.epsilon = float(state["epsilon"])
+        self.game_score = float(state["game_score"])
+        self.game_steps = int(state["game_steps"])
+        self.loss_sum.copy_(state["loss_sum"])
+        self.losses = int(state["losses"])
+        self.agent.load_state_dict(state["agent"])
+        self.replay.load_state_dict(state["replay"])
+        self.env.load_state_dict(state["env"])
+        self.eval_env.load_state_dict(state["eval_env"])
+        self.history.frames[...] = state["history"].numpy()
+        random.setstate(state["python_random"])
+        torch.set_rng_state(state["torch_random"])
+        if "cuda_random" in state and torch.cuda.is_available():
+            torch.cuda.set_rng_state_all(state["cuda_random"])
+
+    def check_finite(self) -> None:
+        """Stop before a checkpoint or a best network could keep non-finite values."""
+        if not torch.isfinite(self.loss_sum):
+            raise TrainingDiverged(
+                f"the loss became NaN or infinite by step {self.steps}: training stopped; "
+                "the last complete checkpoint and the best network are kept as they were"
+            )
+        for name, parameter in self.agent.online.named_parameters():
+            if not torch.isfinite(parameter).all():
+                raise TrainingDiverged(
+                    f"the network weight {name} became NaN or infinite by step {self.steps}: "
+                    "training stopped; the last complete checkpoint and the best network "
+                    "are kept as they were"
+                )
+
+    def close(self) -> None:
+        self.env.close()
+        self.eval_env.close()
+
+
+def replay_device(
+    config: Config, device: torch.device, frame_shape: tuple[int, ...], frame_dtype: np.dtype
+) -> torch.device | None:
+    """Where the replay keeps a second copy of its frames to gather minibatches from
+    (`replay_storage`): the training device, or None for host memory alone. "auto" picks
+    a GPU when its free memory holds the frames with 2 GiB to spare; on CPU the host
+    arrays already are the device's memory. "device" on CPU keeps a (useless but
+    faithful) second copy: it runs the GPU's code path where there is no GPU."""
+    if config.replay_storage == "host" or (
+        config.replay_storage == "auto" and device.type != "cuda"
+    ):
+        return None
+    frame_bytes = int(np.prod(frame_shape)) * np.dtype(frame_dtype).itemsize
+    needed = config.replay_capacity * frame_bytes
+    if device.type == "cuda":
+        free, _ = torch.cuda.mem_get_info(device)
+        if needed + 2 * 2**30 > free:
+            if config.replay_storage == "auto":
+                return None
+            raise ResourceError(
+                f'replay_storage = "device" needs {needed / 2**30:.2f} GiB of {device} memory '
+                f"for the frames but {free / 2**30:.2f} GiB is free (2 GiB kept for the "
+                'networks); use "host" or lower replay_capacity'
+            )
+    else:
+        # The host arrays are allocated next, beside this copy.
+        check_memory(
+            2 * needed, "the replay with a second copy of its frames (replay_storage = device)"
+        )
+    return device
+
+
+def check_disk(run_dir: Path, replay: ReplayMemory) -> None:
+    """Refuse at start when the disk cannot hold the checkpoints of this replay: at worst
+    two full copies (every chunk rewritten while the previous checkpoint is kept)."""
+    needed = 2 * sum(array.nbytes for array in replay.arrays.values())
+    free = shutil.disk_usage(run_dir).free
+    if needed > free:
+        raise ResourceError(
+            f"checkpoints of this replay need up to {needed / 2**30:.1f} GiB of disk in "
+            f"{run_dir} but only {free / 2**30:.1f} GiB are free; free some space or lower "
+            "replay_capacity"
+        )

@@ -1,0 +1,330 @@
+"""The training loop: the Nature algorithm's steps (`state.TrainingState.advance`), and
+around them, each in a method of its own, what a run does besides learning.
+
+    for every step:      advance the algorithm one agent step
+    a game ended:        log its raw score                               (_end_game)
+    every eval period:   evaluate; keep the best, worst, evaluated nets  (_evaluate)
+    every 1,000 steps:   check for NaN, log loss and frames/s, progress  (_report_progress)
+    when due:            write a complete training checkpoint            (_checkpoint)
+    on SIGINT/SIGTERM:   checkpoint, then stop                           (StopRequests)
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import signal
+import threading
+import time
+from collections import deque
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from dqnlab.config import Config, config_fingerprint
+from dqnlab.errors import DqnlabError
+from dqnlab.run import rundir
+from dqnlab.run.checkpoints import CheckpointStore, written_slots
+from dqnlab.run.logs import RunLogger
+from dqnlab.run.play import EvaluationResult
+from dqnlab.run.state import TrainingState, check_disk
+
+PROGRESS_PERIOD_STEPS = 1000  # NaN checks, TensorBoard scalars and the progress bar
+RECENT_GAMES = 20  # games in the progress bar's mean score
+
+
+@dataclass
+class TrainResult:
+    steps: int  # the run's, from its start (also before a resume)
+    frames: int  # the run's training frames, from its start
+    seconds: float  # this session's (since the resume, if one)
+    learning_frames_per_second: float  # after replay start, evaluations included
+    best_eval_mean: float
+    evaluations: list[tuple[int, float]]
+    session_frames: int  # training frames of this session
+    interrupted: str | None = None  # the signal that stopped the run early
+
+    @property
+    def frames_per_second(self) -> float:
+        """This session's training frames over its time."""
+        return self.session_frames / self.seconds if self.seconds > 0 else 0.0
+
+
+@dataclass
+class RunProgress:
+    """The training loop's own bookkeeping, saved in every checkpoint."""
+
+    best_mean: float = -float("inf")
+    evaluations: list[tuple[int, float]] = field(default_factory=list)
+    episodes: int = 0
+    recent_scores: list[float] = field(default_factory=list)  # the last RECENT_GAMES games
+
+
+class StopRequests:
+    """SIGINT/SIGTERM ask the loop to finish its step, checkpoint and stop; a second one
+    stops at once."""
+
+    def __init__(self) -> None:
+        self.signal_name: str | None = None
+        self._previous: dict[int, Any] = {}
+
+    def _handle(self, number: int, frame: Any) -> None:
+        if self.signal_name is not None:
+            raise KeyboardInterrupt
+        self.signal_name = signal.Signals(number).name
+
+    def __enter__(self) -> StopRequests:
+        if threading.current_thread() is threading.main_thread():
+            for number in (signal.SIGINT, signal.SIGTERM):
+                self._previous[number] = signal.signal(number, self._handle)
+        return self
+
+    def __exit__(self, *exc_info: object) -> None:
+        for number, handler in self._previous.items():
+            signal.signal(number, handler)
+
+
+def train(
+    config: Config,
+    run_dir: Path,
+    device: torch.device,
+    progress: bool = True,
+    tensorboard: bool = True,
+    resume: bool = False,
+) -> TrainResult:
+    """Train into `run_dir`: from scratch, or with `resume` from its newest complete
+    checkpoint (the run directory created by the caller with `rundir.prepare_run_dir`)."""
+    return TrainingLoop(config, run_dir, device, progress, tensorboard, resume).run()
+
+
+class TrainingLoop:
+    """One session of a run: from its start or its newest checkpoint to its budget or a
+    stop request."""
+
+    def __init__(
+        self,
+        config: Config,
+        run_dir: Path,
+        device: torch.device,
+        progress: bool,
+        tensorboard: bool,
+        resume: bool,
+    ) -> None:
+        self.config = config
+        self.run_dir = run_dir
+        self.state = TrainingState(config, device)
+        self.store = CheckpointStore(run_dir, keep=config.checkpoints_kept)
+        self.fingerprint = config_fingerprint(config)
+        self.progress = RunProgress()
+        if resume:
+            self._restore(device)
+        else:
+            rundir.write_run_config(run_dir, config)
+        check_disk(run_dir, self.state.replay)
+        self.logger = RunLogger(
+            run_dir, tensorboard=tensorboard, resume_step=self.state.steps if resume else None
+        )
+        replay, env = self.state.replay, self.state.env
+        self.saved_position, self.saved_writes = replay.position, replay.writes
+        self.saved_time = time.monotonic()
+        self.recent_scores: deque[float] = deque(self.progress.recent_scores, maxlen=RECENT_GAMES)
+        self.start, self.start_frames = time.perf_counter(), env.frames
+        self.window_start, self.window_frames = self.start, env.frames  # frames/s window
+        self.learning_since = (self.start, env.frames)  # time and frames when learning starts
+        self.bar = tqdm(
+            total=config.total_steps, initial=self.state.steps, disable=not progress,
+            unit="step", smoothing=0.05,
+        )  # fmt: skip
+        evaluations = self.progress.evaluations
+        self.last_eval_text = f"{evaluations[-1][1]:.1f}" if evaluations else "-"
+
+    def run(self) -> TrainResult:
+        config, state = self.config, self.state
+        interrupted = None
+        with StopRequests() as stop:
+            for step in range(state.steps + 1, config.total_steps + 1):
+                finished = state.advance()
+                if finished is not None:
+                    self._end_game(step, *finished)
+                evaluated = self._is_evaluation_step(step)
+                if evaluated:
+                    self._evaluate(step)
+                if step % PROGRESS_PERIOD_STEPS == 0:
+                    self._report_progress(step)
+                if step == config.replay_start_steps:
+                    self.learning_since = (time.perf_counter(), state.env.frames)
+                if evaluated or stop.signal_name is not None or self._checkpoint_due(step):
+                    self._checkpoint(step)
+                if stop.signal_name is not None:
+                    interrupted = stop.signal_name
+                    break
+        return self._finish(interrupted)
+
+    # Phases --------------------------------------------------------------------------
+
+    def _end_game(self, step: int, score: float, steps: int) -> None:
+        """A training game ended (a whole game, not a life): log its raw score."""
+        self.progress.episodes += 1
+        self.recent_scores.append(score)
+        self.logger.episode(
+            {
+                "step": step,
+                "frames": self.state.env.frames,
+                "episode": self.progress.episodes,
+                "score": score,
+                "steps": steps,
+                "epsilon": round(self.state.epsilon, 6),
+                "wall_seconds": round(time.perf_counter() - self.start, 3),
+            }
+        )
+
+    def _is_evaluation_step(self, step: int) -> bool:
+        config = self.config
+        return step % config.eval_period_steps == 0 and step > config.replay_start_steps
+
+    def _evaluate(self, step: int) -> None:
+        """A periodic evaluation: its mean decides the best network, and the networks kept
+        for inspection (`rundir.keep_evaluated_network`)."""
+        self.state.check_finite()
+        result = self.state.evaluate()
+        mean = _periodic_mean(result)
+        progress = self.progress
+        payload = self._network_payload(step, mean)
+        if mean > progress.best_mean:
+            progress.best_mean = mean
+            rundir.save_network(rundir.network_path(self.run_dir, "best"), payload)
+        rundir.keep_evaluated_network(
+            self.run_dir, self.config, progress.evaluations, step, mean, payload
+        )
+        progress.evaluations.append((step, mean))
+        self.logger.evaluation(
+            {
+                "step": step,
+                "frames": self.state.env.frames,
+                "mean": mean,
+                "std": result.std,
+                "episodes": len(result.scores),
+                "steps": result.steps,
+                "best_mean": progress.best_mean,
+                "frames_per_second": round(result.frames_per_second, 1),
+                "wall_seconds": round(time.perf_counter() - self.start, 3),
+            }
+        )
+        self.last_eval_text = f"{mean:.1f}"
+
+    def _report_progress(self, step: int) -> None:
+        """Every PROGRESS_PERIOD_STEPS: catch NaN where the update does not (on a GPU),
+        log loss, epsilon and frames/s, move the progress bar."""
+        state = self.state
+        if not state.check_every_update:
+            state.check_finite()
+        now, frames = time.perf_counter(), state.env.frames
+        frames_per_second = (frames - self.window_frames) / (now - self.window_start)
+        self.window_start, self.window_frames = now, frames
+        scalars = {"train/epsilon": state.epsilon, "train/frames_per_second": frames_per_second}
+        loss = state.mean_loss()
+        if loss is not None:
+            scalars["train/loss"] = loss
+        self.logger.scalars(step, scalars)
+        if not self.bar.disable:
+            self.bar.update(step - self.bar.n)
+            self.bar.set_postfix(
+                fps=f"{frames_per_second:.0f}",
+                eps=f"{state.epsilon:.3f}",
+                score=f"{np.mean(self.recent_scores):.1f}" if self.recent_scores else "-",
+                eval=self.last_eval_text,
+                refresh=False,
+            )
+
+    def _checkpoint_due(self, step: int) -> bool:
+        """At the end of the budget, every `checkpoint_period_steps` and every
+        `checkpoint_period_minutes` (besides every evaluation and a stop request)."""
+        config = self.config
+        return (
+            step == config.total_steps
+            or (config.checkpoint_period_steps > 0 and step % config.checkpoint_period_steps == 0)
+            or time.monotonic() - self.saved_time >= config.checkpoint_period_minutes * 60
+        )
+
+    def _checkpoint(self, step: int) -> None:
+        """A complete training checkpoint (only the replay chunks written since the last
+        one), then last.pt. A failure stops the run, or with `on_checkpoint_error =
+        "continue"` is reported and training goes on."""
+        state, replay = self.state, self.state.replay
+        state.check_finite()
+        self.progress.recent_scores = list(self.recent_scores)
+        self.logger.flush()
+        changed = written_slots(
+            self.saved_position, replay.writes - self.saved_writes, replay.capacity
+        )
+        # "learner": the key of the training state in checkpoints written since the first.
+        saved = {"learner": state.state_dict(), "run": dataclasses.asdict(self.progress)}
+        try:
+            self.store.save(step, saved, replay.arrays, changed, self.fingerprint)
+            rundir.save_network(
+                rundir.network_path(self.run_dir, "last"), self._network_payload(step)
+            )
+        except (DqnlabError, OSError) as error:
+            if self.config.on_checkpoint_error == "stop":
+                raise DqnlabError(f"checkpoint at step {step} failed: {error}") from None
+            tqdm.write(f"dqnlab: warning: checkpoint at step {step} failed, training goes on: "
+                       f"{error}")  # fmt: skip
+            return
+        self.saved_position, self.saved_writes = replay.position, replay.writes
+        self.saved_time = time.monotonic()
+
+    def _restore(self, device: torch.device) -> None:
+        """Carry on from the newest complete checkpoint, if there is one."""
+        replay = self.state.replay
+        loaded = self.store.latest(self.fingerprint, into=replay.arrays, map_location=device)
+        replay.upload()
+        if loaded is not None:
+            self.state.load_state_dict(loaded.state["learner"])
+            self.progress = RunProgress(**loaded.state["run"])
+
+    def _finish(self, interrupted: str | None) -> TrainResult:
+        state, env = self.state, self.state.env
+        self.bar.update(state.steps - self.bar.n)
+        self.bar.close()
+        end = time.perf_counter()
+        learning_seconds = end - self.learning_since[0]
+        learning_frames = env.frames - self.learning_since[1]
+        best = rundir.network_path(self.run_dir, "best")
+        if not best.exists():
+            # No periodic evaluation happened (a very short run): the final network stands in.
+            rundir.save_network(best, self._network_payload(state.steps, float("nan")))
+        self.logger.close()
+        state.close()
+        return TrainResult(
+            steps=state.steps,
+            frames=env.frames,
+            seconds=end - self.start,
+            learning_frames_per_second=learning_frames / learning_seconds
+            if learning_seconds
+            else 0.0,
+            best_eval_mean=self.progress.best_mean,
+            evaluations=self.progress.evaluations,
+            session_frames=env.frames - self.start_frames,
+            interrupted=interrupted,
+        )
+
+    def _network_payload(self, step: int, eval_mean: float | None = None) -> dict[str, Any]:
+        env = self.state.env
+        return rundir.network_payload(
+            self.config,
+            (self.config.history_length, *env.observation_shape),
+            env.observation_dtype,
+            env.action_names,
+            step,
+            self.state.agent.online,
+            eval_mean,
+        )
+
+
+def _periodic_mean(result: EvaluationResult) -> float:
+    """Mean raw score of the games finished within the budget, 0 if none finished
+    (Lua train_agent.lua: total_reward / max(1, nepisodes))."""
+    return result.mean if result.scores else 0.0

@@ -1,0 +1,136 @@
+"""The runs of a report: found (a run, or a sweep of runs), read (its settings, its
+periodic and final evaluations) and grouped into configurations, the seeds of each.
+
+Reading only: nothing here writes a file or plays a game.
+"""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from dqnlab.config import FIELD_NAMES, RESUMABLE_CHANGES, Config, setting_text
+from dqnlab.errors import DqnlabError
+from dqnlab.run import rundir
+from dqnlab.run.logs import read_csv
+
+# Settings that never define a configuration: the seed (the runs of a configuration are
+# its seeds), the settings that do not change what is learned, those a run may resume
+# with (total_steps only stops the same run earlier or later; the table shows it), and
+# the number of final-evaluation games (a sample size, also in the table).
+NOT_GROUPED = ("seed", *RESUMABLE_CHANGES, "final_eval_episodes")
+ALL_EQUAL = "all settings equal"
+
+
+# Runs ----------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class PeriodicEvaluation:
+    """One row of a run's `evaluations.csv`."""
+
+    step: int
+    frames: int  # training emulator frames at `step`
+    mean: float  # mean score of the games finished within the budget (0 if none)
+    episodes: int
+
+
+@dataclass
+class RunResults:
+    """What the report reads from one run directory."""
+
+    run_dir: Path
+    config: Config
+    evaluations: list[PeriodicEvaluation]
+    final_evaluation: dict[str, Any] | None  # final_evaluation.json's record
+
+
+def find_runs(paths: Sequence[Path]) -> list[Path]:
+    """The run directories named by `paths`: a run itself, or a sweep directory whose
+    subdirectories (one level down) are runs, in natural order (s2 before s10)."""
+    found: list[Path] = []
+    for path in paths:
+        if rundir.is_run_dir(path):
+            found.append(path)
+        elif path.is_dir():
+            children = [child for child in path.iterdir() if rundir.is_run_dir(child)]
+            if not children:
+                raise DqnlabError(
+                    f"{path} is neither a dqnlab run directory (no {rundir.CONFIG_FILE}) nor a "
+                    "directory of runs (none of its subdirectories has one)"
+                )
+            found.extend(sorted(children, key=lambda child: _natural_key(child.name)))
+        else:
+            raise DqnlabError(f"{path} is not a directory: pass run or sweep directories")
+    unique: dict[Path, Path] = {}
+    for path in found:
+        unique.setdefault(path.resolve(), path)
+    return list(unique.values())
+
+
+def _natural_key(name: str) -> list[Any]:
+    return [int(piece) if piece.isdigit() else piece for piece in re.split(r"(\d+)", name)]
+
+
+def load_run(run_dir: Path) -> RunResults:
+    config = rundir.load_run_config(run_dir)
+    evaluations = []
+    path = rundir.evaluations_path(run_dir)
+    for row in read_csv(path) if path.is_file() else []:
+        try:
+            evaluations.append(
+                PeriodicEvaluation(
+                    int(row["step"]), int(row["frames"]), float(row["mean"]), int(row["episodes"])
+                )
+            )
+        except (TypeError, ValueError):  # a line torn by a killed run: fields missing
+            continue
+    return RunResults(run_dir, config, evaluations, rundir.load_final_evaluation(run_dir))
+
+
+# Grouping ------------------------------------------------------------------------------
+
+
+@dataclass
+class Group:
+    """The runs of one game with the same configuration: its seeds."""
+
+    env: str
+    label: str  # "life_loss_terminal=false", or ALL_EQUAL
+    settings: dict[str, Any]  # the settings in the label and their values here
+    runs: list[RunResults] = field(default_factory=list)
+
+
+def label_keys(runs: Sequence[RunResults]) -> list[str]:
+    """The settings that differ between runs of the same game, in `Config` order.
+
+    Runs of different games are never compared with each other: a setting that differs
+    only between games (a per-game budget, say) does not label anything. A setting that
+    differs within any one game labels the runs of every game, so that configurations
+    are named alike across games and the summary across games can match them."""
+    by_env: dict[str, list[dict[str, Any]]] = {}
+    for run in runs:
+        by_env.setdefault(run.config.env, []).append(run.config.to_dict())
+    differing = set()
+    for settings in by_env.values():
+        for name in FIELD_NAMES:
+            grouped = name != "env" and name not in NOT_GROUPED
+            if grouped and len({repr(values[name]) for values in settings}) > 1:
+                differing.add(name)
+    return [name for name in FIELD_NAMES if name in differing]
+
+
+def group_runs(runs: Sequence[RunResults]) -> list[Group]:
+    """Groups by game, then by the values of `label_keys`, in order of first appearance."""
+    keys = label_keys(runs)
+    groups: dict[tuple[str, str], Group] = {}
+    for run in runs:
+        values = run.config.to_dict()
+        settings = {key: values[key] for key in keys}
+        label = ", ".join(f"{k}={setting_text(v)}" for k, v in settings.items()) or ALL_EQUAL
+        group = groups.setdefault((run.config.env, label), Group(run.config.env, label, settings))
+        group.runs.append(run)
+    return list(groups.values())

@@ -1,0 +1,296 @@
+"""Tables: what a report holds (`Report`), and its forms as text: the CSV records and
+their columns, the console table and results.md with its legend. Text only: `write.py`
+writes the files.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from dqnlab.tools.report.curves import Curve, _count_text
+from dqnlab.tools.report.runs import ALL_EQUAL, NOT_GROUPED, Group, RunResults
+from dqnlab.tools.report.scores import BASELINES, ResultRow, SummaryRow
+
+if TYPE_CHECKING:
+    from dqnlab.tools.inspection import Inspection
+
+# The report ----------------------------------------------------------------------------
+
+
+@dataclass
+class Report:
+    """Everything behind a report's outputs, and the files written."""
+
+    runs: list[RunResults]
+    groups: list[Group]
+    rows: list[ResultRow]
+    summary: list[SummaryRow]
+    curves: list[Curve]
+    notes: list[str]
+    evaluated: list[Path]  # runs whose final evaluation was played for this report
+    files: list[Path]
+    inspections: list[RunInspection] = field(default_factory=list)
+
+
+@dataclass
+class RunInspection:
+    """The Q-value inspection of one run's networks written with the report."""
+
+    run_dir: Path
+    out_dir: Path
+    inspection: Inspection
+
+
+# Output formats ------------------------------------------------------------------------
+
+RESULT_COLUMNS = (
+    "game", "configuration", "seeds", "games_per_seed_min", "games_per_seed_max",
+    "total_steps_min", "total_steps_max", "score_mean", "score_std", "score_std_over",
+    "seed_mean_min", "seed_mean_max", "random", "human", "human_nature",
+    "hns_human_percent", "hns_human_nature_percent", "nature_dqn", "nature_dqn_std",
+    "nature_dqn_hns_human_percent", "nature_dqn_hns_human_nature_percent", "seed_paper",
+    "seed_paper_std", "run_dirs",
+)  # fmt: skip
+SUMMARY_COLUMNS = (
+    "statistic", "configuration", "baseline", "games", "game_ids", "hns_percent",
+    "nature_dqn_hns_percent",
+)  # fmt: skip
+
+
+def _result_record(row: ResultRow) -> dict[str, Any]:
+    return {
+        "game": row.game,
+        "configuration": row.configuration,
+        "seeds": row.seeds,
+        "games_per_seed_min": row.games_per_seed[0],
+        "games_per_seed_max": row.games_per_seed[1],
+        "total_steps_min": row.total_steps[0],
+        "total_steps_max": row.total_steps[1],
+        "score_mean": row.score,
+        "score_std": row.score_std,
+        "score_std_over": row.score_std_over,
+        "seed_mean_min": row.seed_score_min,
+        "seed_mean_max": row.seed_score_max,
+        "random": row.random,
+        "human": row.human,
+        "human_nature": row.human_nature,
+        "hns_human_percent": row.hns_human,
+        "hns_human_nature_percent": row.hns_human_nature,
+        "nature_dqn": row.nature_dqn,
+        "nature_dqn_std": row.nature_dqn_std,
+        "nature_dqn_hns_human_percent": row.nature_dqn_hns_human,
+        "nature_dqn_hns_human_nature_percent": row.nature_dqn_hns_human_nature,
+        "seed_paper": row.seed_paper,
+        "seed_paper_std": row.seed_paper_std,
+        "run_dirs": ";".join(str(path) for path in row.run_dirs),
+    }
+
+
+def _summary_record(row: SummaryRow) -> dict[str, Any]:
+    return {
+        "statistic": row.statistic,
+        "configuration": row.configuration,
+        "baseline": row.baseline,
+        "games": len(row.games),
+        "game_ids": ";".join(row.games),
+        "hns_percent": row.hns,
+        "nature_dqn_hns_percent": row.nature_dqn_hns,
+    }
+
+
+def _score_text(value: float | None) -> str:
+    """As the Nature table prints scores: whole numbers from 1000 up, one decimal below."""
+    if value is None:
+        return ""
+    return f"{value:.0f}" if abs(value) >= 1000 else f"{value:.1f}"
+
+
+def _plus_minus(mean: float | None, std: float | None) -> str:
+    if mean is None:
+        return ""
+    return _score_text(mean) + (f" ± {_score_text(std)}" if std is not None else "")
+
+
+def _range_text(low: int, high: int, text: Callable[[float], str] = str) -> str:
+    return text(low) if low == high else f"{text(low)}–{text(high)}"
+
+
+def _percent_text(value: float | None) -> str:
+    return "" if value is None else f"{value:.1f}"
+
+
+TABLE_HEADERS = (
+    "Game", "Configuration", "Seeds", "Games/seed", "Budget (steps)", "Score", "Seed means",
+    "Nature DQN", "Seed paper", "HNS % (dqn_zoo human)", "HNS % (Nature human)",
+)  # fmt: skip
+SUMMARY_HEADERS = (
+    "Across games", "Configuration", "HNS % (dqn_zoo human)", "Nature DQN, same games",
+    "HNS % (Nature human)", "Nature DQN, same games",
+)  # fmt: skip
+
+
+def _table_cells(row: ResultRow) -> list[str]:
+    low, high = row.seed_score_min, row.seed_score_max
+    return [
+        row.game,
+        row.configuration,
+        str(row.seeds),
+        _range_text(*row.games_per_seed),
+        _range_text(*row.total_steps, text=_count_text),
+        _plus_minus(row.score, row.score_std),
+        f"{_score_text(low)} to {_score_text(high)}" if low is not None else "",
+        _plus_minus(row.nature_dqn, row.nature_dqn_std),
+        _plus_minus(row.seed_paper, row.seed_paper_std),
+        _percent_text(row.hns_human),
+        _percent_text(row.hns_human_nature),
+    ]
+
+
+def _summary_cells(summary: Sequence[SummaryRow]) -> list[list[str]]:
+    """One line per statistic and configuration, the two baselines side by side."""
+    lines: dict[tuple[str, str], dict[str, SummaryRow]] = {}
+    for row in summary:
+        lines.setdefault((row.statistic, row.configuration), {})[row.baseline] = row
+    cells = []
+    for (statistic, configuration), by_baseline in lines.items():
+        line = [statistic, configuration]
+        for baseline in BASELINES:
+            found = by_baseline.get(baseline)
+            if found is None:
+                line += ["", ""]
+            else:
+                line += [
+                    f"{found.hns:.1f} ({len(found.games)} games)",
+                    _percent_text(found.nature_dqn_hns),
+                ]
+        cells.append(line)
+    return cells
+
+
+def _aligned(headers: Sequence[str], rows: Sequence[Sequence[str]]) -> str:
+    widths = [max(len(cell) for cell in column) for column in zip(headers, *rows, strict=True)]
+    lines = [headers, ["-" * width for width in widths], *rows]
+    return "\n".join(
+        "  ".join(cell.ljust(width) for cell, width in zip(line, widths, strict=True)).rstrip()
+        for line in lines
+    )
+
+
+def format_table(report: Report) -> str:
+    """The results table (and the scores across games) as aligned text for a terminal."""
+    if not report.rows:
+        return "no run has a final evaluation: nothing to tabulate"
+    text = _aligned(TABLE_HEADERS, [_table_cells(row) for row in report.rows])
+    if report.summary:
+        text += "\n\n" + _aligned(SUMMARY_HEADERS, _summary_cells(report.summary))
+    return text
+
+
+def _markdown_table(headers: Sequence[str], rows: Sequence[Sequence[str]]) -> str:
+    def line(cells: Sequence[str]) -> str:
+        return "| " + " | ".join(cell.replace("|", "\\|") for cell in cells) + " |"
+
+    return "\n".join([line(headers), line(["---"] * len(headers)), *map(line, rows)])
+
+
+def format_markdown(report: Report, out_dir: Path | None = None) -> str:
+    """results.md: the table, the scores across games, the figures (linked relative to
+    `out_dir`), a legend, the notes and the runs."""
+    parts = ["# Results", ""]
+    if report.rows:
+        parts += [_markdown_table(TABLE_HEADERS, [_table_cells(r) for r in report.rows]), ""]
+    else:
+        parts += ["No run has a final evaluation yet.", ""]
+    if report.summary:
+        parts += ["## Across games", ""]
+        parts += [_markdown_table(SUMMARY_HEADERS, _summary_cells(report.summary)), ""]
+    pictures = [
+        (curve.game, path)
+        for curve in report.curves
+        for path in curve.files
+        if path.suffix == ".png"
+    ]
+    if pictures:
+        parts += ["## Learning curves", ""]
+        for game, path in pictures:
+            link = path.name if out_dir is not None and path.parent == out_dir else str(path)
+            parts += [f"![{game}]({link})", ""]
+    if report.inspections:
+        parts += ["## Q-values", ""]
+        for item in report.inspections:
+            inspection = item.inspection
+            networks = " against ".join(network.legend_label for network in inspection.networks)
+            picture = inspection.overview_path or (
+                inspection.figure_paths[0] if inspection.figure_paths else None
+            )
+            parts += [f"{item.run_dir}: {networks}, on {inspection.note}.", ""]
+            if picture is not None:
+                shown = picture.relative_to(out_dir) if out_dir is not None else picture
+                parts += [f"![Q-values of {item.run_dir}]({shown.as_posix()})", ""]
+    parts += ["## Legend", "", *LEGEND, ""]
+    if report.notes:
+        parts += ["## Notes", "", *(f"- {note}" for note in report.notes), ""]
+    parts += ["## Runs", ""]
+    parts += [
+        _markdown_table(
+            ("Game", "Configuration", "Seed", "Run", "Final evaluation"), _run_cells(report)
+        )
+    ]
+    return "\n".join(parts) + "\n"
+
+
+def _run_cells(report: Report) -> list[list[str]]:
+    cells = []
+    for group in report.groups:
+        for run in group.runs:
+            final = run.final_evaluation
+            if final is None:
+                text = "none"
+            else:
+                score = _plus_minus(float(final["mean"]), float(final["std"]))
+                step = final.get("checkpoint_step")
+                text = f"{score} over {final['episodes']} games, best network of step {step}"
+            cells.append([group.env, group.label, str(run.config.seed), str(run.run_dir), text])
+    return cells
+
+
+LEGEND = [
+    "- **Score**: the final evaluation of each run's best network (the network of the "
+    "periodic evaluation with the highest mean): whole games of at most "
+    "final_eval_max_episode_frames frames (5 minutes in the Nature protocol) at "
+    "eval_epsilon, after random no-op starts. With one seed: that run's mean ± s.d. over "
+    "its games. With several seeds: the mean of the seeds' means ± the s.d. of the seeds' "
+    "means; **Seed means** gives the lowest and highest of them. Standard deviations are "
+    "population ones (numpy, ddof 0), as the final evaluation's own.",
+    "- **Configuration**: the settings that differ between runs of the same game; runs "
+    "that differ only in `seed` are the seeds of one configuration. Settings that do not "
+    "change what is learned, and the number of final-evaluation games, never label a "
+    "configuration: "
+    + ", ".join(f"`{name}`" for name in NOT_GROUPED if name != "seed")
+    + ". Runs with different budgets (`total_steps`) are therefore seeds of one "
+    "configuration (with a note); **Budget (steps)** gives their total_steps.",
+    f"- **{ALL_EQUAL}**: every run of the game has the same settings but for the seed.",
+    "- **Games/seed**: final-evaluation games per seed (Nature: 30).",
+    "- **Nature DQN**: Mnih et al. 2015, Extended Data Table 2: mean ± s.d. over 30 games.",
+    '- **Seed paper**: Roderick, MacGlashan and Tellex 2017, "Implementing the Deep '
+    'Q-Network", Table 1 (Pong, Breakout and Seaquest only).',
+    "- **HNS %**: human-normalised score, 100 × (score − random) / (human − random), "
+    "with `random` from dqn_zoo (equal to Nature's) and two human baselines: **dqn_zoo "
+    "human**, the set DeepMind's later code (dqn_zoo `atari_data.py`) uses, and **Nature "
+    "human**, the human tester of the Nature paper (ED Table 2). They differ for 34 of the "
+    "49 games (Pong 14.6 against 9.3), so compare only scores with the same baseline. "
+    "Empty for games outside the reference table (non-Atari environments, Gymnasium ids "
+    "such as ALE/Pong-v5) and for Nature human outside the Nature 49.",
+    "- **Across games**: the median and mean HNS % of each configuration over its games "
+    "that have the baseline (at least 2), with Nature DQN's over the same games where "
+    "every one of them has a Nature DQN score.",
+    "- **Learning curves**: the mean score of the periodic evaluations (eval_steps agent "
+    "steps at eval_epsilon every eval_period_steps; the mean of the games finished within "
+    "the budget) against training steps, training frames on the top axis (measured from "
+    "evaluations.csv: action_repeat_frames per step plus no-op starts). One line per "
+    "configuration, the mean over the seeds that have an evaluation at that step; shaded: "
+    "lowest to highest seed (configurations with 2 seeds or more).",
+]

@@ -1,0 +1,170 @@
+"""The agent: epsilon schedule, clipped TD loss, acting, target copies and update timing."""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+
+import numpy as np
+import pytest
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from dqnlab.algorithm.agent import Agent, epsilon_at, td_loss
+from dqnlab.algorithm.networks import NatureCNN
+from dqnlab.algorithm.replay import Batch
+
+
+def test_epsilon_schedule_of_the_nature_preset(nature) -> None:
+    assert epsilon_at(0, nature) == 1.0
+    assert epsilon_at(49_999, nature) == 1.0  # replay start: uniform random
+    assert epsilon_at(50_000, nature) == 1.0  # anneal begins
+    assert epsilon_at(550_000, nature) == pytest.approx(0.55)  # half way: 1 - 0.9/2
+    assert epsilon_at(1_050_000, nature) == pytest.approx(0.1)
+    assert epsilon_at(40_000_000, nature) == pytest.approx(0.1)
+
+
+class Linear1(nn.Module):
+    """Q(s, a) = w_a * s for a scalar input s: easy to work out by hand."""
+
+    def __init__(self, weights: list[float]) -> None:
+        super().__init__()
+        self.w = nn.Parameter(torch.tensor(weights))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return x.reshape(-1, 1).float() * self.w
+
+
+def test_td_loss_clips_the_error_in_the_gradient_and_sums_over_the_batch() -> None:
+    online = Linear1([1.0, 2.0])
+    target = Linear1([3.0, 0.5])
+    observations = torch.tensor([1.0, 1.0, 2.0])
+    next_observations = torch.tensor([1.0, 2.0, 1.0])
+    actions = torch.tensor([0, 1, 1])
+    rewards = torch.tensor([0.5, 1.0, -1.0])
+    terminals = torch.tensor([0.0, 0.0, 1.0])
+    loss = td_loss(online, target, observations, actions, rewards, terminals,
+                   next_observations, 0.9, 1.0, "sum")  # fmt: skip
+    loss.backward()
+    # q_taken = [1*1, 2*1, 2*2] = [1, 2, 4]
+    # q_target = [0.5 + 0.9*max(3,0.5), 1 + 0.9*max(6,1), -1] = [3.2, 6.4, -1]
+    # td_error = [2.2, 4.4, -5] -> clipped [1, 1, -1]; Huber: |d| - 0.5 each.
+    assert loss.item() == pytest.approx((2.2 - 0.5) + (4.4 - 0.5) + (5 - 0.5))
+    # dL/dw_a = -sum_i clip(d_i) * s_i over samples with action a
+    # w_0: -(1 * 1) = -1 ; w_1: -(1 * 1) - (-1 * 2) = 1
+    assert online.w.grad.tolist() == pytest.approx([-1.0, 1.0])
+    assert target.w.grad is None
+
+
+def test_td_loss_small_errors_are_not_clipped_and_mean_reduction() -> None:
+    online = Linear1([1.0])
+    target = Linear1([1.0])
+    one = torch.tensor([1.0, 1.0])
+    loss = td_loss(online, target, one, torch.tensor([0, 0]), torch.tensor([0.3, -0.4]),
+                   torch.tensor([1.0, 1.0]), one, 0.99, 1.0, "mean")  # fmt: skip
+    loss.backward()
+    # td_error = [0.3 - 1, -0.4 - 1] = [-0.7, -1.4]: 0.5*0.49 and 1.4-0.5
+    assert loss.item() == pytest.approx((0.245 + 0.9) / 2)
+    assert online.w.grad.item() == pytest.approx(-(-0.7 - 1.0) / 2)
+
+
+def test_acting_is_greedy_at_epsilon_zero_and_uniform_at_one(nature) -> None:
+    config = dataclasses.replace(nature, history_length=1)
+    agent = Agent(Linear1([0.1, 0.7, -0.2]), 3, config, torch.device("cpu"), seed=0)
+    observation = np.ones((1,), dtype=np.float32)
+    assert {agent.act(observation, 0.0) for _ in range(20)} == {1}
+    counts = np.bincount([agent.act(observation, 1.0) for _ in range(3000)], minlength=3)
+    assert np.all(np.abs(counts - 1000) < 150)
+
+
+def test_ties_are_broken_at_random(nature) -> None:
+    agent = Agent(Linear1([0.5, 0.5, 0.1]), 3, nature, torch.device("cpu"), seed=0)
+    chosen = {agent.act(np.ones((1,), dtype=np.float32), 0.0) for _ in range(50)}
+    assert chosen == {0, 1}
+
+
+def test_sync_target_copies_weights(nature) -> None:
+    agent = Agent(Linear1([1.0, 2.0]), 2, nature, torch.device("cpu"), seed=0)
+    with torch.no_grad():
+        agent.online.w.add_(5.0)
+    assert agent.target.w.tolist() == [1.0, 2.0]
+    agent.sync_target()
+    assert agent.target.w.tolist() == [6.0, 7.0]
+    assert not agent.target.w.requires_grad
+
+
+def _reference_updates(network: nn.Module, batches, config, steps: int) -> list[torch.Tensor]:
+    """The Nature DQN update written out plainly: default memory layout, F.huber_loss
+    summed over the batch, autograd, and DeepMind's RMSProp equations (NeuralQLearner.lua),
+    in float64: the exact answer that a float32 update approaches up to its rounding (a
+    float32 reference would carry rounding of its own, larger than the agent's with some
+    CPUs' convolution kernels)."""
+    online = copy.deepcopy(network).to(memory_format=torch.contiguous_format).double()
+    target = copy.deepcopy(online)
+    params = list(online.parameters())
+    grad_avgs = [torch.zeros_like(p) for p in params]
+    square_avgs = [torch.zeros_like(p) for p in params]
+    decay, lr, eps = config.rmsprop_decay, config.learning_rate, config.rmsprop_epsilon
+
+    def q_values(net: nn.Module, frames: np.ndarray) -> torch.Tensor:
+        return net.head(net.features(torch.from_numpy(frames).double() / 255.0))
+
+    for batch in batches[:steps]:
+        actions = torch.from_numpy(batch.actions)
+        q_taken = q_values(online, batch.observations)[torch.arange(len(actions)), actions]
+        with torch.no_grad():
+            next_q = q_values(target, batch.next_observations).max(dim=1).values
+            not_terminal = 1.0 - torch.from_numpy(batch.terminals).double()
+            rewards = torch.from_numpy(batch.rewards).double()
+            q_target = rewards + config.discount * not_terminal * next_q
+        loss = F.huber_loss(q_taken, q_target, delta=config.td_error_clip, reduction="sum")
+        gradients = torch.autograd.grad(loss, params)
+        with torch.no_grad():
+            for p, delta, g, g2 in zip(params, gradients, grad_avgs, square_avgs, strict=True):
+                g.copy_(decay * g + (1 - decay) * delta)
+                g2.copy_(decay * g2 + (1 - decay) * delta * delta)
+                p.sub_(lr * delta / torch.sqrt(g2 - g * g + eps))
+    return params
+
+
+def _random_batches(count: int, seed: int, shared_window: bool = False) -> list[Batch]:
+    rng = np.random.default_rng(seed)
+    batches = []
+    for _ in range(count):
+        # Overlapping views of one window, as the replay memory returns them.
+        window = rng.integers(0, 256, size=(32, 5, 84, 84), dtype=np.uint8)
+        batches.append(
+            Batch(
+                observations=window[:, :4],
+                actions=rng.integers(0, 6, size=32).astype(np.int64),
+                rewards=rng.choice([-1.0, 0.0, 1.0], size=32).astype(np.float32),
+                terminals=(rng.random(32) < 0.2).astype(np.float32),
+                next_observations=window[:, 1:],
+                window=window if shared_window else None,
+            )
+        )
+    return batches
+
+
+@pytest.mark.parametrize("shared_window", [False, True], ids=["two-copies", "window-once"])
+@pytest.mark.parametrize(
+    "compile_update", [False, pytest.param(True, marks=pytest.mark.slow, id="compiled")]
+)
+def test_update_matches_a_plain_reference_implementation(
+    nature, compile_update, shared_window
+) -> None:
+    torch.manual_seed(3)
+    network = NatureCNN((4, 84, 84), num_actions=6)
+    initial = [p.detach().clone() for p in network.parameters()]
+    expected = _reference_updates(network, _random_batches(4, seed=5), nature, steps=4)
+    agent = Agent(network, 6, nature, torch.device("cpu"), seed=0, compile_update=compile_update)
+    for batch in _random_batches(4, seed=5, shared_window=shared_window):
+        loss = agent.update(batch)
+    assert loss.shape == () and not loss.requires_grad
+    assert agent.updates == 4
+    for actual, reference in zip(agent.online.parameters(), expected, strict=True):
+        torch.testing.assert_close(actual.double(), reference, rtol=1e-5, atol=1e-8)
+    # The target network keeps the initial weights until sync_target.
+    for kept, start in zip(agent.target.parameters(), initial, strict=True):
+        assert torch.equal(kept, start)

@@ -1,0 +1,286 @@
+"""Tests for dqnlab.algorithm.optim against values worked out by hand."""
+
+from __future__ import annotations
+
+import copy
+import io
+import math
+
+import pytest
+import torch
+
+from dqnlab.algorithm.optim import OPTIMIZER_NAMES, DeepMindRMSprop, build_optimizer
+
+LR = 0.00025
+DECAY = 0.95
+EPS = 0.01
+
+
+def _scalar_parameter(value: float) -> torch.nn.Parameter:
+    # float64 so that comparisons with the hand arithmetic can be tight.
+    return torch.nn.Parameter(torch.tensor(value, dtype=torch.float64))
+
+
+def _step_with_gradient(
+    optimizer: torch.optim.Optimizer, param: torch.Tensor, gradient: float
+) -> None:
+    param.grad = torch.full_like(param, gradient)
+    optimizer.step()
+
+
+def test_three_steps_match_hand_arithmetic() -> None:
+    param = _scalar_parameter(1.0)
+    optimizer = DeepMindRMSprop([param], lr=LR, decay=DECAY, eps=EPS)
+
+    # Step 1, gradient 2: g = 0.05 * 2, g2 = 0.05 * 4, g² = 0.01.
+    _step_with_gradient(optimizer, param, 2.0)
+    state = optimizer.state[param]
+    p1 = 1.0 - 0.00025 * 2.0 / math.sqrt(0.2 - 0.01 + 0.01)
+    assert state["grad_avg"].item() == pytest.approx(0.1, rel=1e-12)
+    assert state["square_avg"].item() == pytest.approx(0.2, rel=1e-12)
+    assert param.item() == pytest.approx(p1, rel=1e-12)
+
+    # Step 2, gradient -1: g = 0.095 - 0.05, g2 = 0.19 + 0.05, g² = 0.045² = 0.002025.
+    _step_with_gradient(optimizer, param, -1.0)
+    p2 = p1 + 0.00025 * 1.0 / math.sqrt(0.24 - 0.002025 + 0.01)
+    assert state["grad_avg"].item() == pytest.approx(0.045, rel=1e-12)
+    assert state["square_avg"].item() == pytest.approx(0.24, rel=1e-12)
+    assert param.item() == pytest.approx(p2, rel=1e-12)
+
+    # Step 3, gradient 0.5: g = 0.04275 + 0.025, g2 = 0.228 + 0.0125, g² = 0.0045900625.
+    _step_with_gradient(optimizer, param, 0.5)
+    p3 = p2 - 0.00025 * 0.5 / math.sqrt(0.2405 - 0.0045900625 + 0.01)
+    assert state["grad_avg"].item() == pytest.approx(0.06775, rel=1e-12)
+    assert state["square_avg"].item() == pytest.approx(0.2405, rel=1e-12)
+    assert param.item() == pytest.approx(p3, rel=1e-12)
+
+
+def test_float32_parameter_follows_the_same_arithmetic() -> None:
+    param = torch.nn.Parameter(torch.tensor([1.0, -3.0]))
+    optimizer = DeepMindRMSprop([param])
+    param.grad = torch.tensor([2.0, 2.0])
+    optimizer.step()
+    moved = 0.00025 * 2.0 / math.sqrt(0.2)
+    assert param.dtype == torch.float32
+    assert param.tolist() == pytest.approx([1.0 - moved, -3.0 - moved], rel=1e-6)
+
+
+def test_differs_from_torch_centered_rmsprop_by_eps_placement() -> None:
+    ours = _scalar_parameter(1.0)
+    theirs = _scalar_parameter(1.0)
+    ours_optimizer = DeepMindRMSprop([ours], lr=LR, decay=DECAY, eps=EPS)
+    theirs_optimizer = torch.optim.RMSprop(
+        [theirs], lr=LR, alpha=DECAY, eps=EPS, centered=True, momentum=0
+    )
+    _step_with_gradient(ours_optimizer, ours, 2.0)
+    _step_with_gradient(theirs_optimizer, theirs, 2.0)
+
+    # g2 - g² = 0.2 - 0.01 = 0.19 for both; only where eps goes differs.
+    ours_expected = 1.0 - 0.00025 * 2.0 / math.sqrt(0.19 + 0.01)  # 0.99888197
+    theirs_expected = 1.0 - 0.00025 * 2.0 / (math.sqrt(0.19) + 0.01)  # 0.99887867
+    assert ours.item() == pytest.approx(ours_expected, rel=1e-12)
+    assert theirs.item() == pytest.approx(theirs_expected, rel=1e-12)
+    assert abs(ours.item() - theirs.item()) > 3e-6
+
+
+def test_first_step_from_zero_state() -> None:
+    gradients = [3.0, -0.5, 0.0, 1e-3, 40.0]
+    initial = [0.1, 0.2, 0.3, 0.4, 0.5]
+    param = torch.nn.Parameter(torch.tensor(initial, dtype=torch.float64))
+    optimizer = DeepMindRMSprop([param], lr=LR, decay=DECAY, eps=EPS)
+    param.grad = torch.tensor(gradients, dtype=torch.float64)
+    optimizer.step()
+
+    # g and g2 start at zero, with no bias correction:
+    # update = lr Δ / sqrt((1-d)Δ² - (1-d)²Δ² + eps).
+    one_minus_decay = 1.0 - DECAY
+    expected = [
+        start
+        - LR * delta / math.sqrt(one_minus_decay * delta**2 - one_minus_decay**2 * delta**2 + EPS)
+        for start, delta in zip(initial, gradients, strict=True)
+    ]
+    assert param.tolist() == pytest.approx(expected, rel=1e-12)
+    assert optimizer.state[param]["grad_avg"].tolist() == pytest.approx(
+        [one_minus_decay * delta for delta in gradients], rel=1e-12
+    )
+
+
+def test_step_with_closure_returns_loss_and_updates() -> None:
+    param = _scalar_parameter(1.5)
+    optimizer = DeepMindRMSprop([param], lr=LR, decay=DECAY, eps=EPS)
+
+    def closure() -> float:
+        optimizer.zero_grad()
+        loss = param**2  # gradient 2 * 1.5 = 3
+        loss.backward()
+        return loss.item()
+
+    loss = optimizer.step(closure)
+    assert loss == pytest.approx(2.25)
+    # g = 0.15, g2 = 0.05 * 9 = 0.45, g² = 0.0225.
+    assert param.item() == pytest.approx(
+        1.5 - 0.00025 * 3.0 / math.sqrt(0.45 - 0.0225 + 0.01), rel=1e-12
+    )
+
+
+def test_parameters_without_gradient_are_skipped() -> None:
+    stepped = _scalar_parameter(1.0)
+    frozen = _scalar_parameter(7.0)
+    optimizer = DeepMindRMSprop([stepped, frozen], lr=LR, decay=DECAY, eps=EPS)
+    stepped.grad = torch.tensor(2.0, dtype=torch.float64)
+    assert frozen.grad is None
+    optimizer.step()
+
+    assert stepped.item() == pytest.approx(1.0 - 0.00025 * 2.0 / math.sqrt(0.2), rel=1e-12)
+    assert frozen.item() == 7.0
+    assert frozen not in optimizer.state
+
+
+def test_param_groups_use_their_own_hyperparameters() -> None:
+    default_group = _scalar_parameter(1.0)
+    fast_group = _scalar_parameter(1.0)
+    optimizer = DeepMindRMSprop(
+        [{"params": [default_group]}, {"params": [fast_group], "lr": 0.001, "eps": 0.2}],
+        lr=LR,
+        decay=DECAY,
+        eps=EPS,
+    )
+    default_group.grad = torch.tensor(2.0, dtype=torch.float64)
+    fast_group.grad = torch.tensor(2.0, dtype=torch.float64)
+    optimizer.step()
+
+    # Both: g2 - g² = 0.19.
+    assert default_group.item() == pytest.approx(1.0 - 0.00025 * 2.0 / math.sqrt(0.2), rel=1e-12)
+    assert fast_group.item() == pytest.approx(1.0 - 0.001 * 2.0 / math.sqrt(0.39), rel=1e-12)
+
+
+def _network() -> torch.nn.Module:
+    torch.manual_seed(0)
+    return torch.nn.Sequential(torch.nn.Linear(3, 4), torch.nn.ReLU(), torch.nn.Linear(4, 2))
+
+
+def _train_steps(
+    network: torch.nn.Module, optimizer: torch.optim.Optimizer, inputs: list[torch.Tensor]
+) -> None:
+    for batch in inputs:
+        optimizer.zero_grad()
+        network(batch).square().sum().backward()
+        optimizer.step()
+
+
+def test_state_dict_round_trip_continues_identically() -> None:
+    generator = torch.Generator().manual_seed(1)
+    batches = [torch.randn(5, 3, generator=generator) for _ in range(6)]
+
+    network_a = _network()
+    optimizer_a = DeepMindRMSprop(network_a.parameters())
+    _train_steps(network_a, optimizer_a, batches[:3])
+
+    # Through bytes, as a checkpoint would be, so nothing is shared with A.
+    buffer = io.BytesIO()
+    torch.save(optimizer_a.state_dict(), buffer)
+    buffer.seek(0)
+    network_b = copy.deepcopy(network_a)
+    optimizer_b = DeepMindRMSprop(network_b.parameters())
+    optimizer_b.load_state_dict(torch.load(buffer))
+
+    _train_steps(network_a, optimizer_a, batches[3:])
+    _train_steps(network_b, optimizer_b, batches[3:])
+
+    for param_a, param_b in zip(network_a.parameters(), network_b.parameters(), strict=True):
+        assert torch.equal(param_a, param_b)
+        for key in ("grad_avg", "square_avg"):
+            assert torch.equal(optimizer_a.state[param_a][key], optimizer_b.state[param_b][key])
+
+    # Without the loaded state the continuation differs, so the check above can fail.
+    network_c = copy.deepcopy(network_b)
+    network_fresh = copy.deepcopy(network_b)
+    _train_steps(network_c, optimizer_b, batches[:1])
+    _train_steps(network_fresh, DeepMindRMSprop(network_fresh.parameters()), batches[:1])
+    assert not all(
+        torch.equal(param_c, param_fresh)
+        for param_c, param_fresh in zip(
+            network_c.parameters(), network_fresh.parameters(), strict=True
+        )
+    )
+
+
+def test_optimizer_names() -> None:
+    assert OPTIMIZER_NAMES == ("deepmind_rmsprop", "rmsprop", "adam")
+
+
+# Distinct values so that a mixed-up argument shows.
+BUILD_ARGUMENTS = {
+    "learning_rate": 0.001,
+    "rmsprop_decay": 0.9,
+    "rmsprop_epsilon": 0.02,
+    "adam_epsilon": 1e-4,
+}
+
+
+def test_build_deepmind_rmsprop() -> None:
+    param = _scalar_parameter(1.0)
+    optimizer = build_optimizer("deepmind_rmsprop", [param], **BUILD_ARGUMENTS)
+    assert type(optimizer) is DeepMindRMSprop
+    group = optimizer.param_groups[0]
+    assert (group["lr"], group["decay"], group["eps"]) == (0.001, 0.9, 0.02)
+
+
+def test_build_rmsprop_is_non_centred_hinton_rmsprop() -> None:
+    param = _scalar_parameter(1.0)
+    optimizer = build_optimizer("rmsprop", [param], **BUILD_ARGUMENTS)
+    assert type(optimizer) is torch.optim.RMSprop
+    group = optimizer.param_groups[0]
+    assert (group["lr"], group["alpha"], group["eps"]) == (0.001, 0.9, 0.02)
+    assert group["centered"] is False
+    assert group["momentum"] == 0
+    assert group["weight_decay"] == 0
+
+    # Hinton's RMSProp: v = 0.1 * 2² = 0.4, update = lr Δ / (sqrt(v) + eps).
+    _step_with_gradient(optimizer, param, 2.0)
+    assert param.item() == pytest.approx(1.0 - 0.001 * 2.0 / (math.sqrt(0.4) + 0.02), rel=1e-12)
+
+
+def test_build_adam() -> None:
+    param = _scalar_parameter(1.0)
+    optimizer = build_optimizer("adam", [param], **BUILD_ARGUMENTS)
+    assert type(optimizer) is torch.optim.Adam
+    group = optimizer.param_groups[0]
+    assert (group["lr"], group["eps"]) == (0.001, 1e-4)
+    assert group["betas"] == (0.9, 0.999)
+
+
+def test_build_unknown_name_lists_accepted_names() -> None:
+    with pytest.raises(ValueError) as error:
+        build_optimizer("sgd", [_scalar_parameter(1.0)], **BUILD_ARGUMENTS)
+    assert str(error.value) == "unknown optimizer 'sgd'; accepted: adam, deepmind_rmsprop, rmsprop"
+
+
+@pytest.mark.parametrize(
+    ("arguments", "message"),
+    [
+        ({"lr": 0.0}, r"lr must be > 0"),
+        ({"lr": -0.00025}, r"lr must be > 0"),
+        ({"lr": float("nan")}, r"lr must be > 0"),
+        ({"decay": 1.0}, r"decay must be in \[0, 1\)"),
+        ({"decay": -0.1}, r"decay must be in \[0, 1\)"),
+        ({"eps": 0.0}, r"eps must be > 0"),
+        ({"eps": -0.01}, r"eps must be > 0"),
+    ],
+)
+def test_rejects_bad_arguments(arguments: dict[str, float], message: str) -> None:
+    with pytest.raises(ValueError, match=message):
+        DeepMindRMSprop([_scalar_parameter(1.0)], **arguments)
+
+
+def test_rejects_bad_argument_in_param_group() -> None:
+    with pytest.raises(ValueError, match=r"decay must be in \[0, 1\)"):
+        DeepMindRMSprop([{"params": [_scalar_parameter(1.0)], "decay": 1.5}])
+
+
+def test_accepts_zero_decay() -> None:
+    # decay 0: g = Δ, g2 = Δ², so the denominator is sqrt(eps).
+    param = _scalar_parameter(1.0)
+    optimizer = DeepMindRMSprop([param], lr=LR, decay=0.0, eps=EPS)
+    _step_with_gradient(optimizer, param, 2.0)
+    assert param.item() == pytest.approx(1.0 - 0.00025 * 2.0 / math.sqrt(0.01), rel=1e-12)

@@ -1,0 +1,284 @@
+"""A killed run resumes exactly: real processes, SIGKILL at random moments, bit-identical state.
+
+Each test trains a short run uninterrupted and the same run killed (or stopped) several
+times and resumed, then compares the final checkpoints: network weights, optimizer state,
+every random stream, the replay memory, and the logs (no duplicate or missing rows).
+"""
+
+from __future__ import annotations
+
+import csv
+import os
+import pickle
+import random
+import signal
+import subprocess
+import sys
+import time
+import warnings
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from dqnlab.algorithm.replay import ReplayMemory
+from dqnlab.config import config_fingerprint, resolve_config
+from dqnlab.errors import DqnlabError, ResourceError
+from dqnlab.run.checkpoints import CheckpointStore
+from dqnlab.run.rundir import load_run_config, prepare_run_dir
+from dqnlab.run.state import TrainingDiverged, TrainingState
+from dqnlab.run.train import train
+
+CARTPOLE = [
+    "--env", "CartPole-v1", "--steps", "3000", "--seed", "5",
+    "--set", "replay_start_steps=300", "--set", "eval_period_steps=1000",
+    "--set", "eval_steps=300", "--set", "checkpoint_period_steps=100",
+    "--set", "replay_capacity=2000",
+    "--no-progress", "--device", "cpu",
+]  # fmt: skip
+PONG = [
+    "--env", "pong", "--steps", "700", "--seed", "3",
+    "--set", "replay_start_steps=150", "--set", "replay_capacity=500",
+    "--set", "eval_period_steps=350", "--set", "eval_steps=100",
+    "--set", "checkpoint_period_steps=50", "--no-progress", "--device", "cpu",
+]  # fmt: skip
+
+
+def dqnlab(*args: str) -> subprocess.Popen[str]:
+    return subprocess.Popen(
+        [sys.executable, "-m", "dqnlab", *args],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )  # fmt: skip
+
+
+def finish(process: subprocess.Popen[str]) -> tuple[int, str]:
+    _, stderr = process.communicate(timeout=600)
+    return process.returncode, stderr
+
+
+def wait_for_checkpoint(run: Path, process: subprocess.Popen[str], after: int) -> bool:
+    """Wait until a checkpoint newer than step `after` exists; False if the run ended."""
+    store = CheckpointStore(run)
+    while process.poll() is None:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            steps = store.steps()
+        if steps and steps[-1] > after:
+            return True
+        time.sleep(0.05)
+    return False
+
+
+def final_state(run: Path) -> tuple[dict, dict[str, np.ndarray]]:
+    config = load_run_config(run)
+    learner_replay = ReplayMemory(
+        config.replay_capacity, *_frame_layout(config), config.history_length, 32, 0
+    )
+    loaded = CheckpointStore(run).latest(config_fingerprint(config), into=learner_replay.arrays)
+    assert loaded is not None and loaded.step == config.total_steps
+    return loaded.state, learner_replay.arrays
+
+
+def _frame_layout(config) -> tuple[tuple[int, ...], np.dtype]:
+    if config.env == "CartPole-v1":
+        return (4,), np.dtype(np.float32)
+    return (84, 84), np.dtype(np.uint8)
+
+
+def assert_identical(a, b, where: str = "state") -> None:
+    if isinstance(a, dict):
+        assert a.keys() == b.keys(), where
+        for key in a:
+            assert_identical(a[key], b[key], f"{where}.{key}")
+    elif isinstance(a, (list, tuple)):
+        assert len(a) == len(b), where
+        for i, (x, y) in enumerate(zip(a, b, strict=True)):
+            assert_identical(x, y, f"{where}[{i}]")
+    elif isinstance(a, torch.Tensor):
+        assert torch.equal(a, b), where
+    elif isinstance(a, np.ndarray):
+        assert np.array_equal(a, b), where
+    elif where.endswith("env.env"):  # a pickled Gymnasium env: compare what it holds
+        env_a, env_b = pickle.loads(a).unwrapped, pickle.loads(b).unwrapped
+        assert np.array_equal(env_a.state, env_b.state), where
+        assert env_a.np_random.bit_generator.state == env_b.np_random.bit_generator.state
+    else:
+        assert a == b, where
+
+
+def csv_rows(path: Path, drop: tuple[str, ...]) -> list[dict[str, str]]:
+    with path.open(newline="") as handle:
+        return [{k: v for k, v in row.items() if k not in drop} for row in csv.DictReader(handle)]
+
+
+def tensorboard_steps(run: Path) -> dict[str, list[int]]:
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    events = EventAccumulator(str(run / "tensorboard"))
+    events.Reload()
+    return {tag: [event.step for event in events.Scalars(tag)] for tag in events.Tags()["scalars"]}
+
+
+def assert_same_run(reference: Path, resumed: Path) -> None:
+    state_a, replay_a = final_state(reference)
+    state_b, replay_b = final_state(resumed)
+    assert_identical(state_a["learner"], state_b["learner"], "learner")
+    assert_identical(state_a["run"], state_b["run"], "run")
+    assert_identical(replay_a, replay_b, "replay")
+    timing = ("wall_seconds", "frames_per_second")
+    for name in ("episodes.csv", "evaluations.csv"):
+        assert csv_rows(reference / name, timing) == csv_rows(resumed / name, timing), name
+    logged = tensorboard_steps(resumed)
+    assert logged == tensorboard_steps(reference) and "eval/mean_score" in logged
+    for tag, steps in logged.items():
+        assert steps == sorted(steps) and len(steps) == len(set(steps)), tag  # no duplicates
+
+
+@pytest.mark.parametrize("args", [CARTPOLE, PONG], ids=["cartpole", "pong"])
+def test_sigkill_at_random_moments_then_resume_is_bit_identical(tmp_path: Path, args) -> None:
+    reference, resumed = tmp_path / "reference", tmp_path / "resumed"
+    code, stderr = finish(dqnlab("train", *args, "--run-dir", str(reference)))
+    assert code == 0, stderr
+    rng = random.Random(len(args))
+    process = dqnlab("train", *args, "--run-dir", str(resumed))
+    kills, last_step = 0, 0
+    while kills < 3:
+        if not wait_for_checkpoint(resumed, process, after=last_step):
+            break  # the run finished before the next kill
+        time.sleep(rng.uniform(0.0, 0.6))
+        process.send_signal(signal.SIGKILL)
+        process.wait()
+        kills += 1
+        last_step = CheckpointStore(resumed).steps()[-1]
+        process = dqnlab("resume", str(resumed), "--no-progress", "--device", "cpu")
+    code, stderr = finish(process)
+    assert code == 0, stderr
+    assert kills >= 2, "the run was too fast to be killed twice"
+    assert_same_run(reference, resumed)
+
+
+@pytest.mark.parametrize(("stop", "status"), [(signal.SIGTERM, 143), (signal.SIGINT, 130)])
+def test_a_stop_signal_checkpoints_and_says_how_to_resume(tmp_path: Path, stop, status) -> None:
+    reference, resumed = tmp_path / "reference", tmp_path / "resumed"
+    code, stderr = finish(dqnlab("train", *CARTPOLE, "--run-dir", str(reference)))
+    assert code == 0, stderr
+    process = dqnlab("train", *CARTPOLE, "--run-dir", str(resumed))
+    assert wait_for_checkpoint(resumed, process, after=0)
+    process.send_signal(stop)
+    code, stderr = finish(process)
+    assert code == status, stderr
+    assert f"resume with: dqnlab resume {resumed}" in stderr
+    stopped_at = int(stderr.split(" at step ")[1].split()[0])
+    assert CheckpointStore(resumed).steps()[-1] == stopped_at  # the step it finished
+    # `train` with the same settings on the same directory carries on too.
+    code, stderr = finish(dqnlab("train", *CARTPOLE, "--run-dir", str(resumed)))
+    assert code == 0, stderr
+    assert_same_run(reference, resumed)
+
+
+def test_a_corrupted_newest_checkpoint_falls_back_to_the_previous_one(tmp_path: Path) -> None:
+    reference, resumed = tmp_path / "reference", tmp_path / "resumed"
+    code, stderr = finish(dqnlab("train", *CARTPOLE, "--run-dir", str(reference)))
+    assert code == 0, stderr
+    process = dqnlab("train", *CARTPOLE, "--run-dir", str(resumed))
+    assert wait_for_checkpoint(resumed, process, after=200)
+    process.send_signal(signal.SIGKILL)
+    process.wait()
+    newest = sorted((resumed / "checkpoints").glob("step-*"))[-1]
+    state = newest / "state.pt"
+    data = bytearray(state.read_bytes())
+    data[len(data) // 2] ^= 0xFF
+    state.write_bytes(bytes(data))
+    code, stderr = finish(dqnlab("resume", str(resumed), "--no-progress", "--device", "cpu"))
+    assert code == 0, stderr
+    assert f"skipping checkpoint {newest}" in stderr
+    assert_same_run(reference, resumed)
+
+
+def test_resume_refuses_another_configuration(tmp_path: Path) -> None:
+    run = tmp_path / "run"
+    short = [*CARTPOLE[:3], "400", *CARTPOLE[4:]]
+    code, stderr = finish(dqnlab("train", *short, "--run-dir", str(run)))
+    assert code == 0, stderr
+    config_file = run / "config.toml"
+    config_file.write_text(config_file.read_text().replace("discount = 0.99", "discount = 0.9"))
+    code, stderr = finish(dqnlab("resume", str(run), "--no-progress"))
+    assert code == 2 and "another configuration" in stderr and "Traceback" not in stderr
+
+
+def small_config(**overrides):
+    values = {"total_steps": 400, "replay_start_steps": 50, "eval_period_steps": 100,
+              "eval_steps": 50, "checkpoint_period_steps": 50, "replay_capacity": 1000}  # fmt: skip
+    values.update(overrides)
+    return resolve_config("classic", env="CartPole-v1", **values)
+
+
+def test_nan_stops_training_and_keeps_the_last_good_checkpoint(tmp_path: Path, monkeypatch) -> None:
+    run = tmp_path / "run"
+    prepare_run_dir(run, force=False)
+    original = TrainingState.advance
+
+    def advance(self):
+        if self.steps == 237:  # poison the weights during step 238
+            with torch.no_grad():
+                next(self.agent.online.parameters()).fill_(float("nan"))
+        return original(self)
+
+    monkeypatch.setattr(TrainingState, "advance", advance)
+    with pytest.raises(TrainingDiverged, match="at step 238"):
+        train(small_config(), run, torch.device("cpu"), progress=False, tensorboard=False)
+    store = CheckpointStore(run)
+    assert store.steps()[-1] == 200
+    loaded = store.latest(config_fingerprint(small_config()))
+    weights = loaded.state["learner"]["agent"]["online"]
+    assert all(torch.isfinite(tensor).all() for tensor in weights.values())
+    best = torch.load(run / "checkpoints" / "best.pt", weights_only=True)
+    assert all(torch.isfinite(tensor).all() for tensor in best["network"].values())
+
+
+def test_disk_full_while_checkpointing(tmp_path: Path, monkeypatch) -> None:
+    import errno
+
+    from dqnlab.run import checkpoints
+
+    calls = 0
+    original = checkpoints._write_buffer
+
+    def failing(handle, data):
+        nonlocal calls
+        calls += 1
+        if calls > 40:  # the first checkpoints succeed, then the disk is full
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        return original(handle, data)
+
+    monkeypatch.setattr(checkpoints, "_write_buffer", failing)
+    run = tmp_path / "stop"
+    prepare_run_dir(run, force=False)
+    with pytest.raises(DqnlabError, match="No space left on device"):
+        train(small_config(), run, torch.device("cpu"), progress=False, tensorboard=False)
+    kept = CheckpointStore(run).steps()
+    assert kept and not list((run / "checkpoints").glob(".*"))  # no partial files left
+    loaded = CheckpointStore(run).latest(config_fingerprint(small_config()))
+    assert loaded.step == kept[-1]
+
+    calls = 0
+    run = tmp_path / "continue"
+    prepare_run_dir(run, force=False)
+    config = small_config(on_checkpoint_error="continue")
+    result = train(config, run, torch.device("cpu"), progress=False, tensorboard=False)
+    assert result.steps == 400  # went on despite the failed checkpoints
+
+
+def test_refuses_at_start_when_the_disk_cannot_hold_the_checkpoints(
+    tmp_path: Path, monkeypatch
+) -> None:
+    import shutil
+    from collections import namedtuple
+
+    usage = namedtuple("usage", "total used free")
+    monkeypatch.setattr(shutil, "disk_usage", lambda path: usage(10**9, 10**9 - 1000, 1000))
+    run = tmp_path / "run"
+    prepare_run_dir(run, force=False)
+    with pytest.raises(ResourceError, match="GiB of disk"):
+        train(small_config(), run, torch.device("cpu"), progress=False, tensorboard=False)
