@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+from typing import Any
+
 import gymnasium as gym
 import numpy as np
 import torch
@@ -50,3 +53,13 @@ class BlinkEnv(gym.Env):
         frame[:10, :16] = (40 * self.t % 256, 200, 30)
         frame[10:, 16:] = (250, 20 * self.t % 256, 120)
         return frame
+
+
+class RunsCode:
+    """Unpickling this object runs code: it creates the file `marker`."""
+
+    def __init__(self, marker: Path) -> None:
+        self.marker = marker
+
+    def __reduce__(self) -> tuple[Any, ...]:
+        return (exec, (f"open({str(self.marker)!r}, 'w').close()",))

@@ -3,10 +3,13 @@
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import errno
+import io
 import os
 import shutil
 import warnings
+import zlib
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -23,6 +26,7 @@ from dqnlab.run.checkpoints import (
     CheckpointWarning,
     written_slots,
 )
+from tests.helpers import RunsCode
 
 CAPACITY = 1000
 CHUNK_SLOTS = 64  # 16 chunks per array: 15 of 64 slots and a last one of 40
@@ -307,13 +311,49 @@ def test_saving_a_step_twice_replaces_it(tmp_path: Path) -> None:
     assert not [p for p in (tmp_path / "checkpoints").iterdir() if p.name.startswith(".")]
 
 
-def test_state_outside_torchs_safe_types_still_loads(tmp_path: Path) -> None:
-    arrays = replay_arrays()
+def test_state_outside_torchs_weights_only_types_is_refused_before_writing(
+    tmp_path: Path,
+) -> None:
     state = {"frame_history": np.arange(12, dtype=np.uint8).reshape(3, 4)}
-    store_in(tmp_path).save(1, state, arrays, None, FINGERPRINT)
-    loaded = store_in(tmp_path).latest(FINGERPRINT)
-    assert loaded is not None
-    np.testing.assert_array_equal(loaded.state["frame_history"], state["frame_history"])
+    with pytest.raises(ValueError, match="numpy.* outside torch's weights-only types"):
+        store_in(tmp_path).save(1, state, replay_arrays(), None, FINGERPRINT)
+    assert store_in(tmp_path).steps() == []
+
+
+def craft_state(run_dir: Path, step: int, marker: Path) -> bytes:
+    """Replace the state of checkpoint `step` by one that runs code when unpickled, with a
+    manifest whose size and CRC-32 match it, as someone who can write the run directory
+    could; return its bytes."""
+    buffer = io.BytesIO()
+    torch.save({**small_state(step), "online": RunsCode(marker)}, buffer)
+    crafted = buffer.getvalue()
+    directory = run_dir / "checkpoints" / f"step-{step:09d}"
+    (directory / "state.pt").write_bytes(crafted)
+    record = checkpoints.FileRecord("state.pt", len(crafted), zlib.crc32(crafted))
+    manifest = dataclasses.replace(manifest_of(run_dir, step), state=record)
+    (directory / "MANIFEST.json").write_bytes(manifest.to_json())
+    return crafted
+
+
+def test_a_crafted_state_file_is_refused_without_running_it(tmp_path: Path) -> None:
+    marker = tmp_path / "marker"
+    first, _ = two_checkpoints(tmp_path)
+    crafted = craft_state(tmp_path, 2, marker)
+    torch.load(io.BytesIO(crafted), weights_only=False)  # the attack is real: a full unpickle
+    assert marker.exists()  # runs it
+    marker.unlink()
+    into = empty_like(first)
+    with pytest.warns(CheckpointWarning, match="step-000000002") as caught:
+        loaded = store_in(tmp_path).latest(FINGERPRINT, into=into)
+    assert "state.pt is refused: it holds exec" in str(caught[0].message)
+    assert loaded is not None and loaded.step == 1
+    assert_same_state(loaded.state, small_state(1))
+    assert_same_arrays(into, first)
+    craft_state(tmp_path, 1, marker)
+    with pytest.warns(CheckpointWarning), pytest.raises(DqnlabError, match="no complete") as error:
+        store_in(tmp_path).latest(FINGERPRINT)
+    assert str(error.value).count("state.pt is refused") == 2
+    assert not marker.exists()
 
 
 # Damage: detected, and the previous complete checkpoint used ----------------------------

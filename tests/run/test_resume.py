@@ -21,14 +21,17 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from ale_py import ALEState
 
 from dqnlab.algorithm.replay import ReplayMemory
 from dqnlab.config import config_fingerprint, resolve_config
-from dqnlab.errors import DqnlabError, ResourceError
+from dqnlab.envs.atari import AtariEnv
+from dqnlab.errors import DqnlabError, EnvError, ResourceError
 from dqnlab.run.checkpoints import CheckpointStore
 from dqnlab.run.rundir import load_run_config, prepare_run_dir
 from dqnlab.run.state import TrainingDiverged, TrainingState
 from dqnlab.run.train import train
+from tests.helpers import RunsCode
 
 CARTPOLE = [
     "--env", "CartPole-v1", "--steps", "3000", "--seed", "5",
@@ -205,6 +208,75 @@ def test_resume_refuses_another_configuration(tmp_path: Path) -> None:
     config_file.write_text(config_file.read_text().replace("discount = 0.99", "discount = 0.9"))
     code, stderr = finish(dqnlab("resume", str(run), "--no-progress"))
     assert code == 2 and "another configuration" in stderr and "Traceback" not in stderr
+
+
+def test_an_atari_run_resumes_without_unpickling_anything(tmp_path: Path, monkeypatch) -> None:
+    config = resolve_config(
+        "classic", env="pong", total_steps=100, replay_start_steps=50, eval_period_steps=100,
+        eval_steps=30, checkpoint_period_steps=50, replay_capacity=200,
+    )  # fmt: skip
+    run = tmp_path / "run"
+    prepare_run_dir(run, force=False)
+    train(config, run, torch.device("cpu"), progress=False, tensorboard=False)
+    saved, saved_replay = final_state(run)
+    learner = TrainingState(config, torch.device("cpu"))
+
+    def refuse(*args, **kwargs):
+        raise AssertionError("resuming an Atari run unpickled something")
+
+    for name in ("load", "loads", "Unpickler"):  # all that torch.load(weights_only=False) uses
+        monkeypatch.setattr(pickle, name, refuse)
+    loaded = CheckpointStore(run).latest(config_fingerprint(config), into=learner.replay.arrays)
+    assert loaded is not None
+    learner.load_state_dict(loaded.state["learner"])
+    monkeypatch.undo()
+    assert_identical(learner.state_dict(), saved["learner"], "learner")
+    assert_identical(learner.replay.arrays, saved_replay, "replay")
+
+
+def pong_after(steps: int) -> AtariEnv:
+    env = AtariEnv("pong", seed=3, training=True)
+    env.reset()
+    for step in range(steps):
+        env.step(step % env.num_actions)
+    return env
+
+
+def play_on(env: AtariEnv) -> tuple[list, bytes]:
+    """What 30 more steps return, with a reset (no-ops from the env's RNG) halfway, and the
+    emulator state after them."""
+    played: list = []
+    for step in range(30):
+        if step == 15:
+            played.append(env.reset().copy())
+        observation, *outcome = env.step(step % env.num_actions)
+        played.append((observation.copy(), *outcome))
+    return played, env.ale.cloneState(include_rng=True).serialize()
+
+
+def test_an_emulator_state_pickled_by_an_earlier_checkpoint_resumes_exactly() -> None:
+    env = pong_after(40)
+    state = env.state_dict()
+    earlier = {key: value for key, value in state.items() if key != "ale_state"}
+    earlier["ale"] = pickle.dumps(ALEState(state["ale_state"]))  # the layout before ale_state
+    expected = play_on(env)
+    for saved in (state, earlier):
+        resumed = AtariEnv("pong", seed=99, training=True)
+        resumed.load_state_dict(saved)
+        assert_identical(play_on(resumed), expected, "played")
+
+
+def test_a_crafted_emulator_state_is_refused_without_running_it(tmp_path: Path) -> None:
+    marker = tmp_path / "marker"
+    state = pong_after(0).state_dict()
+    earlier = {key: value for key, value in state.items() if key != "ale_state"}
+    earlier["ale"] = pickle.dumps(RunsCode(marker))
+    env = AtariEnv("pong", seed=3, training=True)
+    with pytest.raises(EnvError, match="builtins.exec is not an emulator state"):
+        env.load_state_dict(earlier)
+    with pytest.raises(EnvError, match="emulator state cannot be restored"):
+        env.load_state_dict({**state, "ale_state": b"not an emulator state"})
+    assert not marker.exists()
 
 
 def small_config(**overrides):

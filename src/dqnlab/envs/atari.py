@@ -25,13 +25,14 @@ alone). No-op frames are not repeated and their rewards are dropped.
 
 from __future__ import annotations
 
+import io
 import pickle
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from typing import Any
 
 import cv2
 import numpy as np
-from ale_py import Action, ALEInterface, LoggerMode, roms
+from ale_py import Action, ALEInterface, ALEState, LoggerMode, roms
 
 from dqnlab.config import CHOICES
 from dqnlab.errors import EnvError
@@ -300,7 +301,8 @@ class AtariEnv:
         import torch  # kept out of the environment workers' imports
 
         return {
-            "ale": pickle.dumps(self.ale.cloneState(include_rng=True)),
+            # ale-py's own serialisation, read back by ALEState(bytes): no pickle.
+            "ale_state": self.ale.cloneState(include_rng=True).serialize(),
             "rng": self.rng.bit_generator.state,
             "screens": torch.from_numpy(self._screens.copy()),
             "newest": self._newest,
@@ -312,7 +314,7 @@ class AtariEnv:
         }
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
-        self.ale.restoreState(pickle.loads(state["ale"]))
+        self.ale.restoreState(_emulator_state(state))
         self.rng.bit_generator.state = state["rng"]
         self._screens[...] = state["screens"].numpy()
         self._newest = int(state["newest"])
@@ -329,3 +331,28 @@ class AtariEnv:
 
     def close(self) -> None:
         pass
+
+
+class _EmulatorStateUnpickler(pickle.Unpickler):
+    """Unpickles an ALEState and refuses every other class or function: a pickle can call
+    only what `find_class` returns (Python's pickle docs, "Restricting Globals")."""
+
+    def find_class(self, module: str, name: str) -> Any:
+        if (module, name) == (ALEState.__module__, ALEState.__name__):
+            return ALEState
+        raise pickle.UnpicklingError(f"{module}.{name} is not an emulator state")
+
+
+def _emulator_state(state: Mapping[str, Any]) -> ALEState:
+    """The emulator state of `AtariEnv.state_dict`, or of an earlier checkpoint's."""
+    try:
+        if "ale_state" in state:
+            return ALEState(state["ale_state"])
+        # Earlier checkpoints hold pickle.dumps(ALEState): unpickling one calls
+        # ALEState.__setstate__ on the same serialised bytes, and nothing else is allowed.
+        emulator = _EmulatorStateUnpickler(io.BytesIO(state["ale"])).load()
+    except Exception as error:  # noqa: BLE001 - ale-py raises SystemError for bad bytes
+        raise EnvError(f"the checkpoint's emulator state cannot be restored ({error})") from None
+    if not isinstance(emulator, ALEState):
+        raise EnvError(f"the checkpoint's emulator state is a {type(emulator).__name__}")
+    return emulator

@@ -67,7 +67,12 @@ class GymnasiumEnv:
 
     def state_dict(self) -> dict[str, Any]:
         """The whole environment pickled (Gymnasium envs such as CartPole pickle with their
-        RNG); an environment that cannot be pickled resumes with a new episode."""
+        RNG); an environment that cannot be pickled resumes with a new episode.
+
+        Gymnasium has no other general way to save an environment's state, so resuming
+        unpickles it, which can run any code the file names: the README's Resuming section
+        tells users to resume only run directories they trust as they trust code.
+        """
         try:
             env_bytes: bytes | None = pickle.dumps(self.env)
         except Exception:  # noqa: BLE001 - any unpicklable environment
@@ -90,6 +95,7 @@ class GymnasiumEnv:
             self.game_over = True
         else:
             self.env.close()
+            # Trusts the run directory as code: see state_dict.
             self.env = pickle.loads(state["env"])
             self.game_over = bool(state["game_over"])
         self._seed = state["seed"]

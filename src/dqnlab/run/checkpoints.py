@@ -4,7 +4,8 @@ network files best.pt, last.pt ... are `rundir`'s).
 `CheckpointStore` keeps complete, verifiable training checkpoints in RUN_DIR/checkpoints/:
 
     step-000001234/      one complete checkpoint
-        state.pt         torch.save of the caller's small state (networks, optimizer, RNGs...)
+        state.pt         torch.save of the caller's small state (networks, optimizer, RNGs...):
+                         tensors and plain Python values only, read with weights_only=True
         MANIFEST.json    written last: version, config fingerprint, step, and the size and
                          CRC-32 of state.pt and of every replay chunk file it needs
     replay/              chunk files shared by all checkpoints
@@ -24,6 +25,11 @@ Checksum: CRC-32 (zlib) is about four times faster than BLAKE2b (the README's fi
 give the time to verify a 1M replay). A checksum here detects torn or flipped bytes, not
 tampering, so the fast one is enough; chunk files are named by generation, not by content,
 so nothing relies on the checksum being collision resistant.
+
+Loading: a run directory may be writable by others (a shared cluster filesystem), and a
+CRC-32 is no defence against a crafted file, so state.pt is read with torch's weights-only
+unpickler, which builds tensors and plain Python values and calls nothing else. A state it
+refuses is skipped as corrupted; `save` refuses to write one.
 """
 
 from __future__ import annotations
@@ -245,6 +251,7 @@ class CheckpointStore:
         buffer = io.BytesIO()
         torch.save(state, buffer)
         state_bytes = buffer.getbuffer()
+        _check_loadable(state_bytes)
         plan = self._plan(arrays, changed)
         needed = len(state_bytes) + _MANIFEST_SLACK_BYTES
         needed += sum(
@@ -601,14 +608,40 @@ def _load_state(path: Path, record: FileRecord, map_location: str | torch.device
     data = bytearray(record.size)
     _read_verified(path, record, memoryview(data))
     try:
-        return torch.load(io.BytesIO(data), map_location=map_location, weights_only=True)
-    except pickle.UnpicklingError:
-        # Objects outside torch's safe list (numpy arrays, say). The bytes are the ones this
-        # store wrote (their CRC-32 matches the manifest), so a full unpickle is what
-        # torch.save's own round trip would do.
-        return torch.load(io.BytesIO(data), map_location=map_location, weights_only=False)
+        # Never weights_only=False: a matching CRC-32 says the bytes are whole, not that this
+        # store wrote them.
+        state = torch.load(io.BytesIO(data), map_location=map_location, weights_only=True)
+    except pickle.UnpicklingError as error:
+        raise _Incomplete(
+            f"{path.name} is refused: {_unsafe_reason(error)}; dqnlab writes only tensors and "
+            "plain Python values"
+        ) from None
     except Exception as error:  # noqa: BLE001 - a file that verifies but will not load
         raise _Incomplete(f"{path.name} cannot be loaded ({error})") from None
+    if not isinstance(state, dict):
+        raise _Incomplete(f"{path.name} holds a {type(state).__name__}, not a state dict")
+    return state
+
+
+def _check_loadable(state_bytes: memoryview) -> None:
+    """Refuse before writing a state that `_load_state` would refuse when resuming."""
+    try:
+        torch.load(io.BytesIO(state_bytes), map_location="cpu", weights_only=True)
+    except pickle.UnpicklingError as error:
+        raise ValueError(
+            f"the checkpoint state cannot be saved: {_unsafe_reason(error)}; store arrays as "
+            "tensors and numbers as Python numbers"
+        ) from None
+
+
+def _unsafe_reason(error: pickle.UnpicklingError) -> str:
+    """The part of torch's weights-only error that names what was refused."""
+    message = str(error)
+    refused = re.search(r"Unsupported global: GLOBAL (\S+)", message)
+    if refused:
+        return f"it holds {refused.group(1)}, outside torch's weights-only types"
+    detail = re.search(r"WeightsUnpickler error: ([^\n]+)", message)
+    return f"torch's weights-only unpickler refuses it ({detail.group(1) if detail else message})"
 
 
 def _load_arrays(
