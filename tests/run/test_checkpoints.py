@@ -20,7 +20,7 @@ import torch
 
 from dqnlab.config import Config, config_fingerprint
 from dqnlab.errors import DqnlabError, ResourceError
-from dqnlab.run import checkpoints
+from dqnlab.run import checkpoint_files, checkpoints
 from dqnlab.run.checkpoints import (
     CheckpointStore,
     CheckpointWarning,
@@ -122,8 +122,8 @@ def chunk_files(run_dir: Path) -> set[str]:
     return {path.name for path in (run_dir / "checkpoints" / "replay").iterdir()}
 
 
-def manifest_of(run_dir: Path, step: int) -> checkpoints.Manifest:
-    return checkpoints._read_manifest(run_dir / "checkpoints" / f"step-{step:09d}")
+def manifest_of(run_dir: Path, step: int) -> checkpoint_files.Manifest:
+    return checkpoint_files.read_manifest(run_dir / "checkpoints" / f"step-{step:09d}")
 
 
 def new_chunks(run_dir: Path, step: int) -> list[str]:
@@ -173,7 +173,7 @@ def test_round_trip_is_bit_identical(tmp_path: Path) -> None:
 
 def test_ring_ranges_map_to_the_chunks_holding_them() -> None:
     def chunks(slots: tuple[int, int] | None) -> set[int] | None:
-        return checkpoints._changed_chunks(slots, CAPACITY, CHUNK_SLOTS)
+        return checkpoint_files.changed_chunks(slots, CAPACITY, CHUNK_SLOTS)
 
     assert chunks(None) is None
     assert chunks((5, 5)) == set()  # start == stop: nothing written
@@ -203,13 +203,13 @@ def test_incremental_save_writes_only_the_changed_chunks(
     before = chunk_files(tmp_path)
 
     written_bytes = []
-    original = checkpoints._write_buffer
+    original = checkpoint_files.write_buffer
 
     def counting_write(handle: Any, data: memoryview) -> None:
         written_bytes.append(data.nbytes)
         original(handle, data)
 
-    monkeypatch.setattr(checkpoints, "_write_buffer", counting_write)
+    monkeypatch.setattr(checkpoint_files, "write_buffer", counting_write)
     changed = write(arrays, start, count, seed=1)
     store.save(2, small_state(2), arrays, changed, FINGERPRINT)
 
@@ -329,7 +329,7 @@ def craft_state(run_dir: Path, step: int, marker: Path) -> bytes:
     crafted = buffer.getvalue()
     directory = run_dir / "checkpoints" / f"step-{step:09d}"
     (directory / "state.pt").write_bytes(crafted)
-    record = checkpoints.FileRecord("state.pt", len(crafted), zlib.crc32(crafted))
+    record = checkpoint_files.FileRecord("state.pt", len(crafted), zlib.crc32(crafted))
     manifest = dataclasses.replace(manifest_of(run_dir, step), state=record)
     (directory / "MANIFEST.json").write_bytes(manifest.to_json())
     return crafted
@@ -491,14 +491,14 @@ def test_disk_full_midway_leaves_the_previous_checkpoint_and_no_files(
     first = copy_of(arrays)
     before = listing(tmp_path)
 
-    original = checkpoints._write_buffer
+    original = checkpoint_files.write_buffer
 
     def write_until_full(handle: Any, data: memoryview) -> None:
         if Path(handle.name).name.startswith(failing_file):
             raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
         original(handle, data)
 
-    monkeypatch.setattr(checkpoints, "_write_buffer", write_until_full)
+    monkeypatch.setattr(checkpoint_files, "write_buffer", write_until_full)
     changed = write(arrays, 0, 300, seed=1)
     with pytest.raises(DqnlabError, match="No space left on device") as raised:
         store.save(2, small_state(2), arrays, changed, FINGERPRINT)
@@ -511,7 +511,7 @@ def test_disk_full_midway_leaves_the_previous_checkpoint_and_no_files(
     assert_same_arrays(into, first)
 
     # The same store saves again once there is room, still incrementally and correctly.
-    monkeypatch.setattr(checkpoints, "_write_buffer", original)
+    monkeypatch.setattr(checkpoint_files, "write_buffer", original)
     store.save(2, small_state(2), arrays, changed, FINGERPRINT)
     store_in(tmp_path).latest(FINGERPRINT, into=into)
     assert_same_arrays(into, arrays)

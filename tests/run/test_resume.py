@@ -312,10 +312,10 @@ def test_nan_stops_training_and_keeps_the_last_good_checkpoint(tmp_path: Path, m
 def test_disk_full_while_checkpointing(tmp_path: Path, monkeypatch) -> None:
     import errno
 
-    from dqnlab.run import checkpoints
+    from dqnlab.run import checkpoint_files
 
     calls = 0
-    original = checkpoints._write_buffer
+    original = checkpoint_files.write_buffer
 
     def failing(handle, data):
         nonlocal calls
@@ -324,7 +324,7 @@ def test_disk_full_while_checkpointing(tmp_path: Path, monkeypatch) -> None:
             raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
         return original(handle, data)
 
-    monkeypatch.setattr(checkpoints, "_write_buffer", failing)
+    monkeypatch.setattr(checkpoint_files, "write_buffer", failing)
     run = tmp_path / "stop"
     prepare_run_dir(run, force=False)
     with pytest.raises(DqnlabError, match="No space left on device"):

@@ -35,51 +35,59 @@ refuses is skipped as corrupted; `save` refuses to write one.
 from __future__ import annotations
 
 import contextlib
-import errno
 import io
-import json
 import os
-import pickle
 import re
 import shutil
 import warnings
-import zlib
-from collections.abc import Iterable, Iterator, Mapping
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, BinaryIO
+from typing import Any
 
 import numpy as np
 import torch
 
 from dqnlab import __version__
 from dqnlab.errors import DqnlabError, ResourceError
+from dqnlab.run.checkpoint_files import (
+    MANIFEST_FILE,
+    STEP_DIR,
+    ArrayRecord,
+    FileRecord,
+    Incomplete,
+    Manifest,
+    changed_chunks,
+    check_arrays,
+    check_loadable,
+    check_sizes,
+    fsync_directory,
+    load_arrays,
+    load_state,
+    pieces_of,
+    read_manifest,
+    remove_quietly,
+    size_of,
+    step_of,
+    write_file,
+)
 from dqnlab.run.rundir import checkpoints_dir
 
 # Training checkpoints ------------------------------------------------------------------
 
-STORE_FORMAT = "dqnlab-training-checkpoint-1"
-MANIFEST_FILE = "MANIFEST.json"
 STATE_FILE = "state.pt"
 REPLAY_DIR = "replay"
 # 16,384 slots is 115 MB of 84x84 frames: a save rewrites at most two partly changed chunks
 # per changed range (<= 230 MB wasted), and a 1M replay is 62 files per array.
 DEFAULT_CHUNK_SLOTS = 16_384
-_IO_PIECE_BYTES = 16 * 2**20  # checksum and write in pieces: no copy of a whole chunk
 _MANIFEST_SLACK_BYTES = 2**20
-_STEP_DIR = re.compile(r"step-(\d{9,})")
 _CHUNK_FILE = re.compile(r"([A-Za-z0-9_]+)\.(\d{5,})\.g(\d{9,})\.bin(\.tmp)?")
-_ARRAY_NAME = re.compile(r"[A-Za-z0-9_]+")
 _PARTIAL_PREFIX = ".partial-"
 _REPLACED_PREFIX = ".replaced-"
 
 
 class CheckpointWarning(UserWarning):
     """A checkpoint was skipped or removed; the message says which and why."""
-
-
-class _Incomplete(Exception):
-    """A checkpoint is incomplete or corrupted; the message is the reason."""
 
 
 def written_slots(start_position: int, writes: int, capacity: int) -> tuple[int, int] | None:
@@ -93,98 +101,6 @@ def written_slots(start_position: int, writes: int, capacity: int) -> tuple[int,
     if writes >= capacity:
         return None
     return start_position, (start_position + writes) % capacity
-
-
-@dataclass(frozen=True)
-class FileRecord:
-    name: str
-    size: int
-    crc32: int
-
-    def to_json(self) -> dict[str, Any]:
-        return {"file": self.name, "size": self.size, "crc32": f"{self.crc32:08x}"}
-
-    @staticmethod
-    def from_json(data: Mapping[str, Any]) -> FileRecord:
-        return FileRecord(str(data["file"]), int(data["size"]), int(data["crc32"], 16))
-
-
-@dataclass(frozen=True)
-class ArrayRecord:
-    dtype: str  # numpy dtype.str, e.g. "|u1"
-    shape: tuple[int, ...]
-    chunk_slots: int
-    chunks: tuple[FileRecord, ...]
-
-    def chunk_span(self, index: int) -> tuple[int, int]:
-        start = index * self.chunk_slots
-        return start, min(start + self.chunk_slots, self.shape[0])
-
-
-@dataclass(frozen=True)
-class Manifest:
-    step: int
-    generation: int  # save counter of the store: names new chunk files
-    dqnlab_version: str
-    config_fingerprint: str
-    state: FileRecord
-    arrays: dict[str, ArrayRecord]
-
-    def to_json(self) -> bytes:
-        body = {
-            "format": STORE_FORMAT,
-            "checksum": "crc32",
-            "dqnlab_version": self.dqnlab_version,
-            "config_fingerprint": self.config_fingerprint,
-            "step": self.step,
-            "generation": self.generation,
-            "state": self.state.to_json(),
-            "arrays": {
-                name: {
-                    "dtype": record.dtype,
-                    "shape": list(record.shape),
-                    "chunk_slots": record.chunk_slots,
-                    "chunks": [chunk.to_json() for chunk in record.chunks],
-                }
-                for name, record in self.arrays.items()
-            },
-        }
-        # The manifest checks itself too: a flipped digit in a step or size is caught.
-        body["manifest_crc32"] = f"{zlib.crc32(_canonical(body)):08x}"
-        return json.dumps(body, indent=1).encode()
-
-    @staticmethod
-    def from_json(text: bytes) -> Manifest:
-        try:
-            body = json.loads(text)
-            recorded = int(body.pop("manifest_crc32"), 16)
-            if zlib.crc32(_canonical(body)) != recorded:
-                raise _Incomplete(f"{MANIFEST_FILE} fails its own checksum")
-            if body["format"] != STORE_FORMAT:
-                raise _Incomplete(f"{MANIFEST_FILE} has format {body['format']!r}")
-            arrays = {
-                name: ArrayRecord(
-                    dtype=str(record["dtype"]),
-                    shape=tuple(int(n) for n in record["shape"]),
-                    chunk_slots=int(record["chunk_slots"]),
-                    chunks=tuple(FileRecord.from_json(chunk) for chunk in record["chunks"]),
-                )
-                for name, record in body["arrays"].items()
-            }
-            return Manifest(
-                step=int(body["step"]),
-                generation=int(body["generation"]),
-                dqnlab_version=str(body["dqnlab_version"]),
-                config_fingerprint=str(body["config_fingerprint"]),
-                state=FileRecord.from_json(body["state"]),
-                arrays=arrays,
-            )
-        except (ValueError, KeyError, TypeError, AttributeError) as error:
-            raise _Incomplete(f"{MANIFEST_FILE} is unreadable ({error!r})") from None
-
-
-def _canonical(body: Mapping[str, Any]) -> bytes:
-    return json.dumps(body, sort_keys=True, separators=(",", ":")).encode()
 
 
 @dataclass
@@ -202,8 +118,8 @@ class LoadedCheckpoint:
         while choosing the checkpoint, and falls back if one turns out corrupted.
         """
         try:
-            _load_arrays(self.manifest, self.directory.parent / REPLAY_DIR, into)
-        except _Incomplete as reason:
+            load_arrays(self.manifest, self.directory.parent / REPLAY_DIR, into)
+        except Incomplete as reason:
             raise DqnlabError(f"checkpoint {self.directory} is corrupted: {reason}") from None
         self.arrays_loaded = True
 
@@ -246,12 +162,12 @@ class CheckpointStore:
         this store (stop < start wraps around; start == stop is nothing), None for all.
         A failed save leaves the earlier checkpoints as they were and no files behind.
         """
-        capacity = _check_arrays(arrays)
-        changed = _changed_chunks(changed_slots, capacity, self.chunk_slots)
+        capacity = check_arrays(arrays)
+        changed = changed_chunks(changed_slots, capacity, self.chunk_slots)
         buffer = io.BytesIO()
         torch.save(state, buffer)
         state_bytes = buffer.getbuffer()
-        _check_loadable(state_bytes)
+        check_loadable(state_bytes)
         plan = self._plan(arrays, changed)
         needed = len(state_bytes) + _MANIFEST_SLACK_BYTES
         needed += sum(
@@ -277,9 +193,9 @@ class CheckpointStore:
                     chunks=tuple(
                         reused
                         if reused is not None
-                        else _write_file(
+                        else write_file(
                             self.replay_directory / f"{name}.{index:05d}.g{generation:09d}.bin",
-                            _pieces(arrays[name][start:stop].data),
+                            pieces_of(arrays[name][start:stop].data),
                             created,
                         )
                         for index, (start, stop, reused) in enumerate(chunks)
@@ -287,7 +203,7 @@ class CheckpointStore:
                 )
                 for name, chunks in plan.items()
             }
-            _fsync_directory(self.replay_directory)
+            fsync_directory(self.replay_directory)
             staging.mkdir()
             created.append(staging)
             manifest = Manifest(
@@ -295,20 +211,20 @@ class CheckpointStore:
                 generation=generation,
                 dqnlab_version=__version__,
                 config_fingerprint=config_fingerprint,
-                state=_write_file(staging / STATE_FILE, _pieces(state_bytes), created),
+                state=write_file(staging / STATE_FILE, pieces_of(state_bytes), created),
                 arrays=records,
             )
-            _write_file(staging / MANIFEST_FILE, [memoryview(manifest.to_json())], created)
-            _fsync_directory(staging)
+            write_file(staging / MANIFEST_FILE, [memoryview(manifest.to_json())], created)
+            fsync_directory(staging)
             if final.exists():  # saved twice at one step: replace it
                 shutil.rmtree(replaced, ignore_errors=True)
                 os.replace(final, replaced)
             os.replace(staging, final)
             created.append(final)
-            _fsync_directory(self.directory)
+            fsync_directory(self.directory)
         except BaseException as error:
             for path in reversed(created):
-                _remove(path)
+                remove_quietly(path)
             if replaced.exists() and not final.exists():
                 with contextlib.suppress(OSError):
                     os.replace(replaced, final)
@@ -356,7 +272,7 @@ class CheckpointStore:
                 if base is not None and changed is not None and index not in changed:
                     record = base.chunks[index]
                     # Reuse only a file that is still there, whole: else write it again.
-                    if _size_of(self.replay_directory / record.name) == record.size:
+                    if size_of(self.replay_directory / record.name) == record.size:
                         reused = record
                 chunks.append((start, stop, reused))
             plan[name] = chunks
@@ -374,8 +290,8 @@ class CheckpointStore:
         """One more than any generation in use, so a new chunk file never overwrites one."""
         latest = self._base.generation if self._base is not None else 0
         for directory in self._step_directories():
-            with contextlib.suppress(_Incomplete):
-                latest = max(latest, _read_manifest(directory).generation)
+            with contextlib.suppress(Incomplete):
+                latest = max(latest, read_manifest(directory).generation)
         for path in self.replay_directory.iterdir():
             match = _CHUNK_FILE.fullmatch(path.name)
             if match:
@@ -391,11 +307,11 @@ class CheckpointStore:
         """
         complete: list[tuple[int, Path, Manifest]] = []
         for directory in self._step_directories():
-            step = _step_of(directory)
+            step = step_of(directory)
             try:
-                manifest = _read_manifest(directory)
-                _check_sizes(manifest, directory, self.replay_directory)
-            except _Incomplete as reason:
+                manifest = read_manifest(directory)
+                check_sizes(manifest, directory, self.replay_directory)
+            except Incomplete as reason:
                 _warn(f"removing incomplete checkpoint {directory} ({reason})")
                 shutil.rmtree(directory)
                 continue
@@ -422,8 +338,8 @@ class CheckpointStore:
         for path in self.replay_directory.iterdir():
             if path.name not in referenced:
                 path.unlink()
-        _fsync_directory(self.replay_directory)
-        _fsync_directory(self.directory)
+        fsync_directory(self.replay_directory)
+        fsync_directory(self.directory)
 
     # Loading --------------------------------------------------------------------------
 
@@ -432,10 +348,10 @@ class CheckpointStore:
         steps = []
         for directory in self._step_directories():
             try:
-                _check_sizes(_read_manifest(directory), directory, self.replay_directory)
-            except _Incomplete:
+                check_sizes(read_manifest(directory), directory, self.replay_directory)
+            except Incomplete:
                 continue
-            steps.append(_step_of(directory))
+            steps.append(step_of(directory))
         return sorted(steps)
 
     def latest(
@@ -459,14 +375,14 @@ class CheckpointStore:
             if path.name.startswith(_PARTIAL_PREFIX):
                 _warn(f"ignoring {path}: a save that was interrupted before it completed")
         reasons = []
-        for directory in sorted(self._step_directories(), key=_step_of, reverse=True):
+        for directory in sorted(self._step_directories(), key=step_of, reverse=True):
             try:
-                manifest = _read_manifest(directory)
+                manifest = read_manifest(directory)
                 self._check_compatible(manifest, directory, config_fingerprint)
-                _check_sizes(manifest, directory, self.replay_directory)
-                state = _load_state(directory / STATE_FILE, manifest.state, map_location)
-                _load_arrays(manifest, self.replay_directory, into)
-            except _Incomplete as reason:
+                check_sizes(manifest, directory, self.replay_directory)
+                state = load_state(directory / STATE_FILE, manifest.state, map_location)
+                load_arrays(manifest, self.replay_directory, into)
+            except Incomplete as reason:
                 reasons.append(f"{directory.name}: {reason}")
                 _warn(
                     f"skipping checkpoint {directory}: incomplete or corrupted ({reason}); "
@@ -506,228 +422,8 @@ class CheckpointStore:
         return [
             path
             for path in self.directory.iterdir()
-            if _STEP_DIR.fullmatch(path.name) and path.is_dir()
+            if STEP_DIR.fullmatch(path.name) and path.is_dir()
         ]
-
-
-# Files ---------------------------------------------------------------------------------
-
-
-def _write_buffer(handle: BinaryIO, data: memoryview) -> None:
-    """Write `data` to `handle`: the one place checkpoint bytes reach a file."""
-    handle.write(data)
-
-
-def _write_file(path: Path, pieces: Iterable[memoryview], created: list[Path]) -> FileRecord:
-    """Write to a temporary name, fsync, rename; never over an existing file."""
-    temporary = path.with_name(path.name + ".tmp")
-    created.append(temporary)
-    crc = 0
-    size = 0
-    with temporary.open("wb") as handle:
-        for piece in pieces:
-            crc = zlib.crc32(piece, crc)
-            _write_buffer(handle, piece)
-            size += piece.nbytes
-        handle.flush()
-        os.fsync(handle.fileno())
-    if path.exists():
-        raise FileExistsError(errno.EEXIST, f"checkpoint file {path} exists already")
-    os.replace(temporary, path)
-    created.append(path)
-    return FileRecord(path.name, size, crc)
-
-
-def _pieces(data: memoryview) -> Iterator[memoryview]:
-    """The bytes of `data` (C-contiguous) in pieces of _IO_PIECE_BYTES, without copying."""
-    view = data.cast("B")
-    for offset in range(0, view.nbytes, _IO_PIECE_BYTES):
-        yield view[offset : offset + _IO_PIECE_BYTES]
-
-
-def _read_verified(path: Path, record: FileRecord, target: memoryview | None = None) -> None:
-    """Read `path` into `target` (or a scratch buffer) and check its size and CRC-32."""
-    scratch = None if target is not None else memoryview(bytearray(_IO_PIECE_BYTES))
-    crc = 0
-    offset = 0
-    try:
-        with path.open("rb", buffering=0) as handle:
-            while True:
-                if target is not None:
-                    window = target[offset : offset + _IO_PIECE_BYTES]
-                else:
-                    assert scratch is not None
-                    window = scratch
-                read = handle.readinto(window) if window.nbytes else 0
-                if not read:
-                    break
-                crc = zlib.crc32(window[:read], crc)
-                offset += read
-                if target is not None and offset == target.nbytes:
-                    if handle.read(1):
-                        raise _Incomplete(f"{path.name} is longer than recorded")
-                    break
-    except OSError as error:
-        raise _Incomplete(f"{path.name} cannot be read ({error.strerror or error})") from None
-    if offset != record.size:
-        raise _Incomplete(f"{path.name} has {offset} bytes, the manifest says {record.size}")
-    if crc != record.crc32:
-        raise _Incomplete(f"{path.name} fails its CRC-32 check")
-
-
-def _read_manifest(directory: Path) -> Manifest:
-    path = directory / MANIFEST_FILE
-    try:
-        text = path.read_bytes()
-    except FileNotFoundError:
-        raise _Incomplete(f"no {MANIFEST_FILE}: the save did not complete") from None
-    except OSError as error:
-        raise _Incomplete(f"{MANIFEST_FILE} cannot be read ({error})") from None
-    manifest = Manifest.from_json(text)
-    if manifest.step != _step_of(directory):
-        raise _Incomplete(f"{MANIFEST_FILE} is for step {manifest.step}")
-    return manifest
-
-
-def _check_sizes(manifest: Manifest, directory: Path, replay_directory: Path) -> None:
-    files = [(directory / manifest.state.name, manifest.state)]
-    files += [
-        (replay_directory / chunk.name, chunk)
-        for record in manifest.arrays.values()
-        for chunk in record.chunks
-    ]
-    for path, record in files:
-        size = _size_of(path)
-        if size is None:
-            raise _Incomplete(f"{path.name} is missing")
-        if size != record.size:
-            raise _Incomplete(f"{path.name} has {size} bytes, the manifest says {record.size}")
-
-
-def _load_state(path: Path, record: FileRecord, map_location: str | torch.device) -> dict:
-    data = bytearray(record.size)
-    _read_verified(path, record, memoryview(data))
-    try:
-        # Never weights_only=False: a matching CRC-32 says the bytes are whole, not that this
-        # store wrote them.
-        state = torch.load(io.BytesIO(data), map_location=map_location, weights_only=True)
-    except pickle.UnpicklingError as error:
-        raise _Incomplete(
-            f"{path.name} is refused: {_unsafe_reason(error)}; dqnlab writes only tensors and "
-            "plain Python values"
-        ) from None
-    except Exception as error:  # noqa: BLE001 - a file that verifies but will not load
-        raise _Incomplete(f"{path.name} cannot be loaded ({error})") from None
-    if not isinstance(state, dict):
-        raise _Incomplete(f"{path.name} holds a {type(state).__name__}, not a state dict")
-    return state
-
-
-def _check_loadable(state_bytes: memoryview) -> None:
-    """Refuse before writing a state that `_load_state` would refuse when resuming."""
-    try:
-        torch.load(io.BytesIO(state_bytes), map_location="cpu", weights_only=True)
-    except pickle.UnpicklingError as error:
-        raise ValueError(
-            f"the checkpoint state cannot be saved: {_unsafe_reason(error)}; store arrays as "
-            "tensors and numbers as Python numbers"
-        ) from None
-
-
-def _unsafe_reason(error: pickle.UnpicklingError) -> str:
-    """The part of torch's weights-only error that names what was refused."""
-    message = str(error)
-    refused = re.search(r"Unsupported global: GLOBAL (\S+)", message)
-    if refused:
-        return f"it holds {refused.group(1)}, outside torch's weights-only types"
-    detail = re.search(r"WeightsUnpickler error: ([^\n]+)", message)
-    return f"torch's weights-only unpickler refuses it ({detail.group(1) if detail else message})"
-
-
-def _load_arrays(
-    manifest: Manifest, replay_directory: Path, into: Mapping[str, np.ndarray] | None
-) -> None:
-    if into is not None:
-        expected = set(manifest.arrays)
-        if set(into) != expected:
-            raise DqnlabError(
-                f"the checkpoint holds the arrays {sorted(expected)}, not {sorted(into)}"
-            )
-    for name, record in manifest.arrays.items():
-        target = None
-        if into is not None:
-            target = into[name]
-            if target.dtype.str != record.dtype or tuple(target.shape) != record.shape:
-                raise DqnlabError(
-                    f"the checkpoint's {name} is {record.dtype} {record.shape}, "
-                    f"the memory to load it into is {target.dtype.str} {tuple(target.shape)}"
-                )
-            if not target.flags.c_contiguous or not target.flags.writeable:
-                raise ValueError(f"{name} must be a writeable C-contiguous array")
-        for index, chunk in enumerate(record.chunks):
-            start, stop = record.chunk_span(index)
-            view = target[start:stop].data.cast("B") if target is not None else None
-            _read_verified(replay_directory / chunk.name, chunk, view)
-
-
-def _check_arrays(arrays: Mapping[str, np.ndarray]) -> int:
-    capacities = {array.shape[0] if array.ndim else 0 for array in arrays.values()}
-    if len(capacities) > 1 or 0 in capacities:
-        raise ValueError(f"replay arrays must share a non-zero first dimension, not {capacities}")
-    for name, array in arrays.items():
-        if not _ARRAY_NAME.fullmatch(name):
-            raise ValueError(f"array name {name!r} must be letters, digits and underscores")
-        if not array.flags.c_contiguous:
-            raise ValueError(f"array {name} must be C-contiguous")
-    return capacities.pop() if capacities else 0
-
-
-def _changed_chunks(
-    changed_slots: tuple[int, int] | None, capacity: int, chunk_slots: int
-) -> set[int] | None:
-    """The chunk indices holding the ring range [start, stop); None for every chunk."""
-    if changed_slots is None:
-        return None
-    start, stop = changed_slots
-    if not (0 <= start < capacity and 0 <= stop <= capacity):
-        raise ValueError(f"changed_slots {changed_slots} is outside a capacity of {capacity}")
-    spans = [(start, stop)] if start <= stop else [(start, capacity), (0, stop)]
-    chunks: set[int] = set()
-    for low, high in spans:
-        if low < high:
-            chunks.update(range(low // chunk_slots, (high - 1) // chunk_slots + 1))
-    return chunks
-
-
-def _step_of(directory: Path) -> int:
-    match = _STEP_DIR.fullmatch(directory.name)
-    assert match is not None
-    return int(match.group(1))
-
-
-def _size_of(path: Path) -> int | None:
-    try:
-        return path.stat().st_size
-    except FileNotFoundError:
-        return None
-
-
-def _fsync_directory(directory: Path) -> None:
-    """Make renames and deletions in `directory` durable."""
-    descriptor = os.open(directory, os.O_RDONLY)
-    try:
-        os.fsync(descriptor)
-    finally:
-        os.close(descriptor)
-
-
-def _remove(path: Path) -> None:
-    # Cleaning up after a failure: the original error is the one to report.
-    with contextlib.suppress(OSError):
-        if path.is_dir() and not path.is_symlink():
-            shutil.rmtree(path)
-        else:
-            path.unlink(missing_ok=True)
 
 
 def _warn(message: str) -> None:

@@ -1,0 +1,346 @@
+"""The files of a training checkpoint: the manifest's records, and reading and writing
+files whole, checksummed, fsynced and renamed into place (`checkpoints.CheckpointStore`
+decides what to write and what to load)."""
+
+from __future__ import annotations
+
+import contextlib
+import errno
+import io
+import json
+import os
+import pickle
+import re
+import shutil
+import zlib
+from collections.abc import Iterable, Iterator, Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, BinaryIO
+
+import numpy as np
+import torch
+
+from dqnlab.errors import DqnlabError
+
+STORE_FORMAT = "dqnlab-training-checkpoint-1"
+MANIFEST_FILE = "MANIFEST.json"
+IO_PIECE_BYTES = 16 * 2**20  # checksum and write in pieces: no copy of a whole chunk
+STEP_DIR = re.compile(r"step-(\d{9,})")
+_ARRAY_NAME = re.compile(r"[A-Za-z0-9_]+")
+
+
+class Incomplete(Exception):
+    """A checkpoint is incomplete or corrupted; the message is the reason."""
+
+
+@dataclass(frozen=True)
+class FileRecord:
+    name: str
+    size: int
+    crc32: int
+
+    def to_json(self) -> dict[str, Any]:
+        return {"file": self.name, "size": self.size, "crc32": f"{self.crc32:08x}"}
+
+    @staticmethod
+    def from_json(data: Mapping[str, Any]) -> FileRecord:
+        return FileRecord(str(data["file"]), int(data["size"]), int(data["crc32"], 16))
+
+
+@dataclass(frozen=True)
+class ArrayRecord:
+    dtype: str  # numpy dtype.str, e.g. "|u1"
+    shape: tuple[int, ...]
+    chunk_slots: int
+    chunks: tuple[FileRecord, ...]
+
+    def chunk_span(self, index: int) -> tuple[int, int]:
+        start = index * self.chunk_slots
+        return start, min(start + self.chunk_slots, self.shape[0])
+
+
+@dataclass(frozen=True)
+class Manifest:
+    step: int
+    generation: int  # save counter of the store: names new chunk files
+    dqnlab_version: str
+    config_fingerprint: str
+    state: FileRecord
+    arrays: dict[str, ArrayRecord]
+
+    def to_json(self) -> bytes:
+        body = {
+            "format": STORE_FORMAT,
+            "checksum": "crc32",
+            "dqnlab_version": self.dqnlab_version,
+            "config_fingerprint": self.config_fingerprint,
+            "step": self.step,
+            "generation": self.generation,
+            "state": self.state.to_json(),
+            "arrays": {
+                name: {
+                    "dtype": record.dtype,
+                    "shape": list(record.shape),
+                    "chunk_slots": record.chunk_slots,
+                    "chunks": [chunk.to_json() for chunk in record.chunks],
+                }
+                for name, record in self.arrays.items()
+            },
+        }
+        # The manifest checks itself too: a flipped digit in a step or size is caught.
+        body["manifest_crc32"] = f"{zlib.crc32(canonical(body)):08x}"
+        return json.dumps(body, indent=1).encode()
+
+    @staticmethod
+    def from_json(text: bytes) -> Manifest:
+        try:
+            body = json.loads(text)
+            recorded = int(body.pop("manifest_crc32"), 16)
+            if zlib.crc32(canonical(body)) != recorded:
+                raise Incomplete(f"{MANIFEST_FILE} fails its own checksum")
+            if body["format"] != STORE_FORMAT:
+                raise Incomplete(f"{MANIFEST_FILE} has format {body['format']!r}")
+            arrays = {
+                name: ArrayRecord(
+                    dtype=str(record["dtype"]),
+                    shape=tuple(int(n) for n in record["shape"]),
+                    chunk_slots=int(record["chunk_slots"]),
+                    chunks=tuple(FileRecord.from_json(chunk) for chunk in record["chunks"]),
+                )
+                for name, record in body["arrays"].items()
+            }
+            return Manifest(
+                step=int(body["step"]),
+                generation=int(body["generation"]),
+                dqnlab_version=str(body["dqnlab_version"]),
+                config_fingerprint=str(body["config_fingerprint"]),
+                state=FileRecord.from_json(body["state"]),
+                arrays=arrays,
+            )
+        except (ValueError, KeyError, TypeError, AttributeError) as error:
+            raise Incomplete(f"{MANIFEST_FILE} is unreadable ({error!r})") from None
+
+
+def canonical(body: Mapping[str, Any]) -> bytes:
+    return json.dumps(body, sort_keys=True, separators=(",", ":")).encode()
+
+
+# Files ---------------------------------------------------------------------------------
+
+
+def write_buffer(handle: BinaryIO, data: memoryview) -> None:
+    """Write `data` to `handle`: the one place checkpoint bytes reach a file."""
+    handle.write(data)
+
+
+def write_file(path: Path, pieces: Iterable[memoryview], created: list[Path]) -> FileRecord:
+    """Write to a temporary name, fsync, rename; never over an existing file."""
+    temporary = path.with_name(path.name + ".tmp")
+    created.append(temporary)
+    crc = 0
+    size = 0
+    with temporary.open("wb") as handle:
+        for piece in pieces:
+            crc = zlib.crc32(piece, crc)
+            write_buffer(handle, piece)
+            size += piece.nbytes
+        handle.flush()
+        os.fsync(handle.fileno())
+    if path.exists():
+        raise FileExistsError(errno.EEXIST, f"checkpoint file {path} exists already")
+    os.replace(temporary, path)
+    created.append(path)
+    return FileRecord(path.name, size, crc)
+
+
+def pieces_of(data: memoryview) -> Iterator[memoryview]:
+    """The bytes of `data` (C-contiguous) in pieces of IO_PIECE_BYTES, without copying."""
+    view = data.cast("B")
+    for offset in range(0, view.nbytes, IO_PIECE_BYTES):
+        yield view[offset : offset + IO_PIECE_BYTES]
+
+
+def read_verified(path: Path, record: FileRecord, target: memoryview | None = None) -> None:
+    """Read `path` into `target` (or a scratch buffer) and check its size and CRC-32."""
+    scratch = None if target is not None else memoryview(bytearray(IO_PIECE_BYTES))
+    crc = 0
+    offset = 0
+    try:
+        with path.open("rb", buffering=0) as handle:
+            while True:
+                if target is not None:
+                    window = target[offset : offset + IO_PIECE_BYTES]
+                else:
+                    assert scratch is not None
+                    window = scratch
+                read = handle.readinto(window) if window.nbytes else 0
+                if not read:
+                    break
+                crc = zlib.crc32(window[:read], crc)
+                offset += read
+                if target is not None and offset == target.nbytes:
+                    if handle.read(1):
+                        raise Incomplete(f"{path.name} is longer than recorded")
+                    break
+    except OSError as error:
+        raise Incomplete(f"{path.name} cannot be read ({error.strerror or error})") from None
+    if offset != record.size:
+        raise Incomplete(f"{path.name} has {offset} bytes, the manifest says {record.size}")
+    if crc != record.crc32:
+        raise Incomplete(f"{path.name} fails its CRC-32 check")
+
+
+def read_manifest(directory: Path) -> Manifest:
+    path = directory / MANIFEST_FILE
+    try:
+        text = path.read_bytes()
+    except FileNotFoundError:
+        raise Incomplete(f"no {MANIFEST_FILE}: the save did not complete") from None
+    except OSError as error:
+        raise Incomplete(f"{MANIFEST_FILE} cannot be read ({error})") from None
+    manifest = Manifest.from_json(text)
+    if manifest.step != step_of(directory):
+        raise Incomplete(f"{MANIFEST_FILE} is for step {manifest.step}")
+    return manifest
+
+
+def check_sizes(manifest: Manifest, directory: Path, replay_directory: Path) -> None:
+    files = [(directory / manifest.state.name, manifest.state)]
+    files += [
+        (replay_directory / chunk.name, chunk)
+        for record in manifest.arrays.values()
+        for chunk in record.chunks
+    ]
+    for path, record in files:
+        size = size_of(path)
+        if size is None:
+            raise Incomplete(f"{path.name} is missing")
+        if size != record.size:
+            raise Incomplete(f"{path.name} has {size} bytes, the manifest says {record.size}")
+
+
+def load_state(path: Path, record: FileRecord, map_location: str | torch.device) -> dict:
+    data = bytearray(record.size)
+    read_verified(path, record, memoryview(data))
+    try:
+        # Never weights_only=False: a matching CRC-32 says the bytes are whole, not that this
+        # store wrote them.
+        state = torch.load(io.BytesIO(data), map_location=map_location, weights_only=True)
+    except pickle.UnpicklingError as error:
+        raise Incomplete(
+            f"{path.name} is refused: {_unsafe_reason(error)}; dqnlab writes only tensors and "
+            "plain Python values"
+        ) from None
+    except Exception as error:  # noqa: BLE001 - a file that verifies but will not load
+        raise Incomplete(f"{path.name} cannot be loaded ({error})") from None
+    if not isinstance(state, dict):
+        raise Incomplete(f"{path.name} holds a {type(state).__name__}, not a state dict")
+    return state
+
+
+def check_loadable(state_bytes: memoryview) -> None:
+    """Refuse before writing a state that `load_state` would refuse when resuming."""
+    try:
+        torch.load(io.BytesIO(state_bytes), map_location="cpu", weights_only=True)
+    except pickle.UnpicklingError as error:
+        raise ValueError(
+            f"the checkpoint state cannot be saved: {_unsafe_reason(error)}; store arrays as "
+            "tensors and numbers as Python numbers"
+        ) from None
+
+
+def _unsafe_reason(error: pickle.UnpicklingError) -> str:
+    """The part of torch's weights-only error that names what was refused."""
+    message = str(error)
+    refused = re.search(r"Unsupported global: GLOBAL (\S+)", message)
+    if refused:
+        return f"it holds {refused.group(1)}, outside torch's weights-only types"
+    detail = re.search(r"WeightsUnpickler error: ([^\n]+)", message)
+    return f"torch's weights-only unpickler refuses it ({detail.group(1) if detail else message})"
+
+
+def load_arrays(
+    manifest: Manifest, replay_directory: Path, into: Mapping[str, np.ndarray] | None
+) -> None:
+    if into is not None:
+        expected = set(manifest.arrays)
+        if set(into) != expected:
+            raise DqnlabError(
+                f"the checkpoint holds the arrays {sorted(expected)}, not {sorted(into)}"
+            )
+    for name, record in manifest.arrays.items():
+        target = None
+        if into is not None:
+            target = into[name]
+            if target.dtype.str != record.dtype or tuple(target.shape) != record.shape:
+                raise DqnlabError(
+                    f"the checkpoint's {name} is {record.dtype} {record.shape}, "
+                    f"the memory to load it into is {target.dtype.str} {tuple(target.shape)}"
+                )
+            if not target.flags.c_contiguous or not target.flags.writeable:
+                raise ValueError(f"{name} must be a writeable C-contiguous array")
+        for index, chunk in enumerate(record.chunks):
+            start, stop = record.chunk_span(index)
+            view = target[start:stop].data.cast("B") if target is not None else None
+            read_verified(replay_directory / chunk.name, chunk, view)
+
+
+def check_arrays(arrays: Mapping[str, np.ndarray]) -> int:
+    capacities = {array.shape[0] if array.ndim else 0 for array in arrays.values()}
+    if len(capacities) > 1 or 0 in capacities:
+        raise ValueError(f"replay arrays must share a non-zero first dimension, not {capacities}")
+    for name, array in arrays.items():
+        if not _ARRAY_NAME.fullmatch(name):
+            raise ValueError(f"array name {name!r} must be letters, digits and underscores")
+        if not array.flags.c_contiguous:
+            raise ValueError(f"array {name} must be C-contiguous")
+    return capacities.pop() if capacities else 0
+
+
+def changed_chunks(
+    changed_slots: tuple[int, int] | None, capacity: int, chunk_slots: int
+) -> set[int] | None:
+    """The chunk indices holding the ring range [start, stop); None for every chunk."""
+    if changed_slots is None:
+        return None
+    start, stop = changed_slots
+    if not (0 <= start < capacity and 0 <= stop <= capacity):
+        raise ValueError(f"changed_slots {changed_slots} is outside a capacity of {capacity}")
+    spans = [(start, stop)] if start <= stop else [(start, capacity), (0, stop)]
+    chunks: set[int] = set()
+    for low, high in spans:
+        if low < high:
+            chunks.update(range(low // chunk_slots, (high - 1) // chunk_slots + 1))
+    return chunks
+
+
+def step_of(directory: Path) -> int:
+    match = STEP_DIR.fullmatch(directory.name)
+    assert match is not None
+    return int(match.group(1))
+
+
+def size_of(path: Path) -> int | None:
+    try:
+        return path.stat().st_size
+    except FileNotFoundError:
+        return None
+
+
+def fsync_directory(directory: Path) -> None:
+    """Make renames and deletions in `directory` durable."""
+    descriptor = os.open(directory, os.O_RDONLY)
+    try:
+        os.fsync(descriptor)
+    finally:
+        os.close(descriptor)
+
+
+def remove_quietly(path: Path) -> None:
+    # Cleaning up after a failure: the original error is the one to report.
+    with contextlib.suppress(OSError):
+        if path.is_dir() and not path.is_symlink():
+            shutil.rmtree(path)
+        else:
+            path.unlink(missing_ok=True)
