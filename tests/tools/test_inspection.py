@@ -23,14 +23,8 @@ from dqnlab.run import rundir
 from dqnlab.run.logs import read_csv
 from dqnlab.run.rundir import eval_network_path, prepare_run_dir
 from dqnlab.run.train import train
-from dqnlab.tools.inspection import (
-    CSV_COLUMNS,
-    Q_VALUES_AXES,
-    Inspection,
-    frame_figure,
-    inspect_run,
-    parse_checkpoints,
-)
+from dqnlab.tools.inspection import CSV_COLUMNS, Inspection, inspect_run, parse_checkpoints
+from dqnlab.tools.inspection_figures import Q_VALUES_AXES, frame_figure
 
 FRAMES = 3
 MAX_GAME_STEPS = 200  # enough for the test, cheap to play twice
