@@ -55,6 +55,7 @@ def test_a_sweep_directory_stands_for_its_runs(cartpole_sweep: Path, tmp_path: P
     assert find_runs([cartpole_sweep, runs[1]]) == runs  # a run named twice counts once
 
 
+@pytest.mark.parametrize("make", [lambda root: root, lambda root: root / "missing"])
 def test_a_directory_that_is_neither_run_nor_sweep_is_refused(
     tmp_path: Path, make: Callable[[Path], Path]
 ) -> None:
