@@ -163,9 +163,16 @@ def evaluate(
             run_dir, checkpoint, episodes, seed, resolve_device(device)
         )
     else:
-        result, network = _filmed_evaluation(
+        from dqnlab.tools.video import filmed_final_evaluation
+
+        recording, network = filmed_final_evaluation(
             run_dir, checkpoint, episodes, seed, resolve_device(device), video, video_format
         )
+        for file in recording.paths:
+            typer.echo(f"dqnlab: wrote {file}")
+        if recording.note:
+            typer.echo(f"dqnlab: {recording.video_format.upper()}: {recording.note}")
+        result = recording.result
     config = network.config
     typer.echo(
         f"{config.env}: {result.mean:.2f} ± {result.std:.2f} over {len(result.scores)} games "
@@ -184,42 +191,6 @@ def evaluate(
     if json_path:
         json_path.parent.mkdir(parents=True, exist_ok=True)
         json_path.write_text(json.dumps(record, indent=2) + "\n")
-
-
-def _filmed_evaluation(  # noqa: ANN202
-    run_dir: Path,
-    checkpoint: str,
-    episodes: int | None,
-    seed: int,
-    device,  # noqa: ANN001
-    out_dir: Path,
-    video_format: str,
-):
-    """`final_evaluation`'s games played on one environment (as with num_envs=1) and filmed."""
-    from dqnlab.run.evaluate import load_evaluated_agent
-    from dqnlab.tools.video import VIDEO_FORMATS, record_games
-
-    if video_format not in VIDEO_FORMATS:
-        raise DqnlabError(f"--video-format {video_format!r}: choose {', '.join(VIDEO_FORMATS)}")
-    if episodes is not None and episodes <= 0:
-        raise DqnlabError(f"--episodes {episodes} must be positive")
-    network = load_evaluated_agent(run_dir, checkpoint, seed, device)
-    config = network.config
-    recording = record_games(
-        network.agent,
-        config,
-        episodes if episodes is not None else config.final_eval_episodes,
-        network.env_seed,
-        out_dir,
-        epsilon=config.eval_epsilon,
-        max_episode_frames=config.final_eval_max_episode_frames,
-        video_format=video_format,
-    )
-    for file in recording.paths:
-        typer.echo(f"dqnlab: wrote {file}")
-    if recording.note:
-        typer.echo(f"dqnlab: {recording.video_format.upper()}: {recording.note}")
-    return recording.result, network
 
 
 @app.command()

@@ -26,6 +26,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import torch
 from PIL import Image
 
 from dqnlab.algorithm.agent import Agent
@@ -34,6 +35,7 @@ from dqnlab.envs import is_atari, make_env
 from dqnlab.envs.atari import AtariEnv
 from dqnlab.envs.generic import GymnasiumEnv
 from dqnlab.errors import DqnlabError
+from dqnlab.run.evaluate import EvaluatedNetwork, load_evaluated_agent
 from dqnlab.run.play import EvaluationResult, play
 
 VIDEO_FORMATS = ("auto", "mp4", "gif")
@@ -444,3 +446,33 @@ def record_games(
     gif_fps = 100 / gif_delay_centiseconds(fps, _gif_stride(fps))
     file_fps = gif_fps if chosen_format == "gif" else fps
     return Recording(result, recorder.paths, chosen_format, file_fps, note)
+
+
+def filmed_final_evaluation(
+    run_dir: Path,
+    checkpoint: str,
+    episodes: int | None,
+    seed: int,
+    device: torch.device,
+    out_dir: Path,
+    video_format: str,
+) -> tuple[Recording, EvaluatedNetwork]:
+    """`evaluate.final_evaluation`'s games of a run's network, played on one environment
+    (as with num_envs=1) and filmed into `out_dir`."""
+    if video_format not in VIDEO_FORMATS:
+        raise DqnlabError(f"--video-format {video_format!r}: choose {', '.join(VIDEO_FORMATS)}")
+    if episodes is not None and episodes <= 0:
+        raise DqnlabError(f"--episodes {episodes} must be positive")
+    network = load_evaluated_agent(run_dir, checkpoint, seed, device)
+    config = network.config
+    recording = record_games(
+        network.agent,
+        config,
+        episodes if episodes is not None else config.final_eval_episodes,
+        network.env_seed,
+        out_dir,
+        epsilon=config.eval_epsilon,
+        max_episode_frames=config.final_eval_max_episode_frames,
+        video_format=video_format,
+    )
+    return recording, network
