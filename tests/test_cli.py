@@ -111,8 +111,9 @@ def test_report_and_inspect_two_runs_that_differ_in_one_setting(tmp_path: Path) 
     inspected = dqnlab("inspect", str(runs[0]), "--frames", "2", "--checkpoints", "best")
     assert inspected.returncode == 0, inspected.stderr
     assert len(list((runs[0] / "inspect").glob("frame-*.png"))) == 2
+    # By default (eval_networks_kept = "best_and_worst") no network is kept by step.
     missing = dqnlab("inspect", str(runs[0]), "--checkpoints", "123")
-    assert missing.returncode == 2 and "no network evaluated at step 123" in missing.stderr
+    assert missing.returncode == 2 and "keeps no network per evaluation" in missing.stderr
 
 
 @pytest.mark.parametrize(

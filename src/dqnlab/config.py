@@ -93,9 +93,10 @@ class Config:
         18_000, "Episode cap of the final evaluation in raw frames (5 minutes)"
     )
     eval_networks_kept: str = _setting(
-        "all",
-        "Networks kept for inspection: all (one per periodic evaluation, ~6.7 MB each for "
-        "Atari) or best_and_worst (best.pt, and worst.pt: the worst after the first quarter)",
+        "best_and_worst",
+        "Networks kept for inspection: best_and_worst (best.pt, and worst.pt: the worst after "
+        "the first quarter; bounded disk) or all (also one per periodic evaluation, ~6.7 MB "
+        "each for Atari: 1.3 GB per 50M-step run)",
     )
     # Budget.
     total_steps: int = _setting(50_000_000, "Training budget in agent steps")

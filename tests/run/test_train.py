@@ -55,7 +55,7 @@ def test_run_directory_contents(tmp_path: Path) -> None:
     run = tmp_path / "run"
     config = resolve_config(
         "classic", env="CartPole-v1", total_steps=1200, replay_start_steps=200,
-        eval_period_steps=400, eval_steps=300, seed=3,
+        eval_period_steps=400, eval_steps=300, seed=3, eval_networks_kept="all",
     )  # fmt: skip
     prepare_run_dir(run, force=False)
     result = train(config, run, torch.device("cpu"), progress=False)

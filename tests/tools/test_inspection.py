@@ -49,6 +49,7 @@ def breakout_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
         eval_period_steps=100,
         eval_steps=100,
         batch_size=8,
+        eval_networks_kept="all",  # the networks of steps 200, 300 and 400 are inspected
     )  # evaluations at steps 200, 300 and 400
     return _train(tmp_path_factory.mktemp("breakout"), config)
 

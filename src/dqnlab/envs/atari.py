@@ -119,7 +119,8 @@ class FramePreprocessor:
         # Both kernels average with non-negative weights summing to one: no clipping needed.
         if self._truncate:
             # The Lua code's (uint8)(255 * y). The 1/1000 grey level keeps float noise (an
-            # exact 142 computed as 141.99998) from costing a level.
+            # exact 142 computed as 141.99998) from costing a level, as it often did in the
+            # Lua code's float32 arithmetic (README, "Where dqnlab departs from the Lua code").
             np.add(self._resized, _TRUNCATION_GUARD, out=self._resized)
             np.floor(self._resized, out=self._resized)
         else:
