@@ -70,8 +70,15 @@ class Agent:
         device: torch.device,
         seed: int,
         compile_update: bool = False,
+        *,
+        input_shape: tuple[int, ...] | None = None,
+        observation_dtype: np.dtype | None = None,
+        action_names: Sequence[str] | None = None,
     ) -> None:
-        """`compile_update` (opt-in): compile the loss with its backward pass and the
+        """`input_shape`, `observation_dtype`, `action_names`: what the network takes and
+        chooses among, where known (players of several environments need them).
+
+        `compile_update` (opt-in): compile the loss with its backward pass and the
         optimizer step with `torch.compile`. The same arithmetic, fused into fewer passes
         over memory, so results agree up to float rounding; the first update then takes
         tens of seconds to compile and needs a C++ compiler (on CPU)."""
@@ -90,10 +97,11 @@ class Agent:
         )
         self.rng = np.random.default_rng(seed)
         self.updates = 0
-        # What the network takes and chooses among, where known (`agent_for_input` sets it).
-        self.input_shape: tuple[int, ...] | None = None
-        self.observation_dtype: np.dtype | None = None
-        self.action_names: list[str] | None = None
+        self.input_shape = tuple(input_shape) if input_shape is not None else None
+        self.observation_dtype = (
+            np.dtype(observation_dtype) if observation_dtype is not None else None
+        )
+        self.action_names = list(action_names) if action_names is not None else None
         self._optimizer_step: Callable[[], object] = self.optimizer.step
         if compile_update:
             self._loss_and_backward = torch.compile(self._loss_and_backward)  # type: ignore[method-assign]
@@ -227,8 +235,14 @@ def agent_for_input(
         is_image_observation(input_shape[1:], observation_dtype),
         config.mlp_hidden_sizes,
     )
-    agent = Agent(network, len(action_names), config, device, seed, config.compile_update)
-    agent.input_shape = tuple(input_shape)
-    agent.observation_dtype = np.dtype(observation_dtype)
-    agent.action_names = list(action_names)
-    return agent
+    return Agent(
+        network,
+        len(action_names),
+        config,
+        device,
+        seed,
+        config.compile_update,
+        input_shape=input_shape,
+        observation_dtype=observation_dtype,
+        action_names=action_names,
+    )
