@@ -212,10 +212,37 @@ def bench(
     compile_update: Annotated[
         bool, typer.Option("--compile", help="Measure with the update compiled (compile_update)")
     ] = False,
+    compression_fill_steps: Annotated[
+        int,
+        typer.Option(
+            help="Transitions of random play in which to measure replay_compression = lz4 "
+            "against none (0: skip)"
+        ),
+    ] = 100_000,
+    compression_checkpoint_capacity: Annotated[
+        int,
+        typer.Option(
+            help="Time the compressed and raw checkpoints on replays of this many slots, "
+            "repeating the filled transitions (0: the filled replays themselves)"
+        ),
+    ] = 0,
+    compression_scan: Annotated[
+        Path | None,
+        typer.Option(
+            help="Instead of the rest: write each Atari-57 game's compressed frame size to "
+            "this CSV (the table of data/replay_compression.csv)"
+        ),
+    ] = None,
+    scan_steps: Annotated[
+        int, typer.Option(help="Frames of random play per game for --compression-scan")
+    ] = 16_384,
 ) -> None:
     """Measure training and evaluation throughput, the update, and replay memory use."""
     from dqnlab.tools.bench import run_benchmark
 
+    if compression_scan is not None:
+        _compression_scan(compression_scan, scan_steps)
+        return
     figures = run_benchmark(
         env,
         steps,
@@ -223,12 +250,36 @@ def bench(
         resolve_device(device),
         peers=peers,
         compile_update=compile_update,
+        compression_fill_steps=compression_fill_steps,
+        compression_checkpoint_capacity=compression_checkpoint_capacity,
     )
     for name, value in figures.items():
         typer.echo(f"{name:40s} {value:.4g}" if isinstance(value, float) else f"{name:40s} {value}")
     if json_path:
         json_path.parent.mkdir(parents=True, exist_ok=True)
         json_path.write_text(json.dumps(figures, indent=2) + "\n")
+
+
+def _compression_scan(path: Path, steps: int) -> None:
+    import csv
+
+    from dqnlab.tools.compression_bench import scan
+    from dqnlab.tools.report.scores import load_reference_scores
+
+    games = sorted(load_reference_scores())
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with path.open("w", newline="") as handle:
+        handle.write(f"# dqnlab bench --compression-scan {path} --scan-steps {steps}\n")
+        writer = None
+        for row in (scan([game], steps)[0] for game in games):
+            if writer is None:
+                writer = csv.DictWriter(handle, fieldnames=list(row))
+                writer.writeheader()
+            writer.writerow(row)
+            handle.flush()
+            typer.echo(
+                f"{row['game']:24s} {row['lz4_bytes_per_frame']:8.1f} B/frame  x{row['ratio']}"
+            )
 
 
 @app.command()

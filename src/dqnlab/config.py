@@ -110,6 +110,11 @@ class Config:
         "frames also kept on the training device and minibatches gathered there (GPU memory "
         "for a copy of the frames); auto: device on a GPU with room for them, else host",
     )
+    replay_compression: str = _setting(
+        "none",
+        "Replay frames kept compressed in host memory (image observations): none, or lz4 "
+        "(each filled 16,384-slot chunk compressed in blocks of 4 frames; the same minibatches)",
+    )
     # Checkpoints (the whole training state; a killed run resumes exactly).
     checkpoint_period_minutes: float = _setting(
         30.0, "Wall-clock minutes between checkpoints, besides one at every evaluation"
@@ -142,6 +147,7 @@ CHOICES: dict[str, tuple[str, ...]] = {
     "on_checkpoint_error": ("stop", "continue"),
     "eval_networks_kept": ("all", "best_and_worst"),
     "replay_storage": ("auto", "host", "device"),
+    "replay_compression": ("none", "lz4"),
 }
 
 
@@ -188,6 +194,7 @@ def _validate(config: Config) -> None:
 RESUMABLE_CHANGES = (
     "total_steps", "compile_update", "checkpoint_period_minutes", "checkpoint_period_steps",
     "checkpoints_kept", "on_checkpoint_error", "eval_networks_kept", "replay_storage",
+    "replay_compression",
 )  # fmt: skip
 
 

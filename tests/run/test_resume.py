@@ -44,7 +44,8 @@ PONG = [
     "--env", "pong", "--steps", "700", "--seed", "3",
     "--set", "replay_start_steps=150", "--set", "replay_capacity=500",
     "--set", "eval_period_steps=350", "--set", "eval_steps=100",
-    "--set", "checkpoint_period_steps=50", "--no-progress", "--device", "cpu",
+    "--set", "checkpoint_period_steps=50", "--set", "replay_compression=lz4",
+    "--no-progress", "--device", "cpu",
 ]  # fmt: skip
 
 

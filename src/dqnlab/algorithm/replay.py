@@ -15,6 +15,11 @@ With a `device` (a GPU), the frames are also kept there and minibatches are gath
 there: nothing but the slot numbers crosses to the device per update. The host arrays
 stay the reference (checkpoints read and load them; `upload` copies them over after a
 load), and the sampled transitions are the same either way.
+
+With `compression` (`replay_compression`, image observations only), the host frames are a
+`CompressedFrames`: every 16,384-slot chunk but the one being written is compressed, and a
+minibatch decompresses the blocks its windows touch. The batches are the same bytes as
+without it; a device copy, when there is one, stays raw.
 """
 
 from __future__ import annotations
@@ -27,14 +32,32 @@ import numpy as np
 import psutil
 import torch
 
+from dqnlab.algorithm.compression import CHUNK_SLOTS, CompressedFrames, check_codec
 from dqnlab.errors import ResourceError
 
 _SLOT_OVERHEAD_BYTES = 4 + 4 + 1 + 1  # action int32, reward float32, terminal, is_last
 
 
-def replay_bytes(capacity: int, frame_shape: tuple[int, ...], frame_dtype: np.dtype) -> int:
+def replay_bytes(
+    capacity: int,
+    frame_shape: tuple[int, ...],
+    frame_dtype: np.dtype,
+    compressed_frame_bytes: float | None = None,
+) -> int:
+    """Host bytes of a replay; `compressed_frame_bytes`: the compressed size of one frame,
+    when the frames are compressed (plus the raw chunk being written)."""
     frame_bytes = int(np.prod(frame_shape)) * np.dtype(frame_dtype).itemsize
-    return capacity * (frame_bytes + _SLOT_OVERHEAD_BYTES)
+    if compressed_frame_bytes is None:
+        return capacity * (frame_bytes + _SLOT_OVERHEAD_BYTES)
+    raw_chunk = min(capacity, CHUNK_SLOTS) * frame_bytes
+    return int(capacity * (compressed_frame_bytes + _SLOT_OVERHEAD_BYTES) + raw_chunk)
+
+
+def compresses(compression: str, frame_shape: tuple[int, ...]) -> bool:
+    """Whether `compression` applies: it is for image observations, not vectors."""
+    if compression != "none":
+        check_codec(compression)
+    return compression != "none" and len(frame_shape) >= 2
 
 
 def check_memory(required_bytes: int, what: str) -> None:
@@ -74,17 +97,35 @@ class ReplayMemory:
         seed: int,
         device: torch.device | None = None,
         pin_memory: bool = False,
+        compression: str = "none",
+        expected_frame_bytes: float | None = None,
+        chunk_slots: int = CHUNK_SLOTS,
     ) -> None:
         """`device`: also keep the frames there and gather minibatches there (see the
         module's docstring). `pin_memory`: the host minibatch buffer in page-locked memory,
-        for faster copies to a GPU (needs CUDA)."""
+        for faster copies to a GPU (needs CUDA). `compression`: a codec for the host frames
+        (ignored for vector observations: `compresses`); `expected_frame_bytes`: the
+        measured compressed size of one of this game's frames, which the memory check may
+        count on (without it, the check asks for the raw size: see `_check_projection`)."""
         frame_dtype = np.dtype(frame_dtype)
-        check_memory(replay_bytes(capacity, frame_shape, frame_dtype), "the replay memory")
+        self.compressed = compresses(compression, tuple(frame_shape))
+        self.frame_shape = tuple(frame_shape)
+        self.raw_frame_bytes = int(np.prod(frame_shape)) * frame_dtype.itemsize
+        # What the replay may grow to, as far as is known before it is filled.
+        self.expected_bytes = replay_bytes(
+            capacity, frame_shape, frame_dtype, expected_frame_bytes if self.compressed else None
+        )
+        check_memory(self.expected_bytes, "the replay memory")
         self.capacity = capacity
         self.history_length = history_length
         self.batch_size = batch_size
-        self.frame_shape = tuple(frame_shape)
-        self.frames = np.zeros((capacity, *frame_shape), dtype=frame_dtype)
+        self.frames: np.ndarray | CompressedFrames
+        if self.compressed:
+            self.frames = CompressedFrames(
+                capacity, self.frame_shape, frame_dtype, compression, chunk_slots
+            )
+        else:
+            self.frames = np.zeros((capacity, *frame_shape), dtype=frame_dtype)
         self.actions = np.zeros(capacity, dtype=np.int32)
         self.rewards = np.zeros(capacity, dtype=np.float32)
         self.terminals = np.zeros(capacity, dtype=np.bool_)
@@ -105,8 +146,9 @@ class ReplayMemory:
         # torch views of the same memory: index_select copies the windows on every core,
         # twice as fast as np.take on 2 cores (np.take with `out` and mode "raise" even
         # buffers the whole copy).
-        self._frames_view = torch.from_numpy(self.frames)
+        self._frames_view = None if self.compressed else torch.from_numpy(self.frames)
         self._window_view = torch.from_numpy(self._window).view(-1, *frame_shape)
+        self._window_frames = self._window.reshape(-1, *frame_shape)  # a view
         self._slots_view = torch.from_numpy(self._slots).view(-1)
         self._batch = Batch(
             observations=self._window[:, :history_length],
@@ -118,12 +160,11 @@ class ReplayMemory:
         )
         self.device = device
         if device is not None:  # the same buffers, on the device
+            torch_dtype = torch.from_numpy(self._window[:0]).dtype
             self._device_frames = torch.zeros(
-                self._frames_view.shape, dtype=self._frames_view.dtype, device=device
+                (capacity, *frame_shape), dtype=torch_dtype, device=device
             )
-            self._device_window = torch.zeros(
-                self._window.shape, dtype=self._frames_view.dtype, device=device
-            )
+            self._device_window = torch.zeros(self._window.shape, dtype=torch_dtype, device=device)
             self._device_slots = torch.zeros(self._slots.size, dtype=torch.int64, device=device)
             # Kept frames of each window, shaped to broadcast over a frame.
             self._device_mask = torch.zeros(
@@ -138,7 +179,18 @@ class ReplayMemory:
 
     @property
     def bytes_per_transition(self) -> float:
-        return replay_bytes(1, self.frame_shape, self.frames.dtype)
+        """Host bytes per transition without compression."""
+        return self.raw_frame_bytes + _SLOT_OVERHEAD_BYTES
+
+    @property
+    def resident_bytes(self) -> int:
+        """Host bytes the replay's arrays hold now (compressed frames as they are)."""
+        frames = (
+            self.frames.resident_bytes
+            if isinstance(self.frames, CompressedFrames)
+            else self.frames.nbytes
+        )
+        return frames + self.capacity * _SLOT_OVERHEAD_BYTES
 
     # Writing --------------------------------------------------------------------------
 
@@ -154,9 +206,16 @@ class ReplayMemory:
         self, observation: np.ndarray, action: int, reward: float, terminal: bool, is_last: bool
     ) -> None:
         slot = self.position
-        self.frames[slot] = observation
+        sealed = None
+        if isinstance(self.frames, CompressedFrames):
+            sealed = self.frames.sealed_slots
+            row = torch.from_numpy(self.frames.write(slot, observation))
+        else:
+            assert self._frames_view is not None
+            self.frames[slot] = observation
+            row = self._frames_view[slot]
         if self.device is not None:
-            self._device_frames[slot] = self._frames_view[slot]
+            self._device_frames[slot] = row
         self.actions[slot] = action
         self.rewards[slot] = reward
         self.terminals[slot] = terminal
@@ -164,6 +223,8 @@ class ReplayMemory:
         self.position = (slot + 1) % self.capacity
         self.size = min(self.size + 1, self.capacity)
         self.writes += 1
+        if sealed is not None and self.frames.sealed_slots != sealed:  # type: ignore[union-attr]
+            self._check_projection()
 
     # Sampling -------------------------------------------------------------------------
 
@@ -208,7 +269,11 @@ class ReplayMemory:
             if self.size < self.capacity:  # before the first write there is nothing
                 mask[:, j] &= raw_slots[:, j] >= 0
         if self.device is None:
-            torch.index_select(self._frames_view, 0, self._slots_view, out=self._window_view)
+            if isinstance(self.frames, CompressedFrames):
+                self.frames.gather(self._slots_view.numpy(), self._window_frames)
+            else:
+                assert self._frames_view is not None
+                torch.index_select(self._frames_view, 0, self._slots_view, out=self._window_view)
             if not mask.all():
                 self._window[~mask] = 0
         else:
@@ -226,14 +291,43 @@ class ReplayMemory:
 
     def upload(self) -> None:
         """Copy the host frames to the device (after a checkpoint was loaded into them)."""
-        if self.device is not None:
+        if self.device is None:
+            return
+        if isinstance(self.frames, CompressedFrames):
+            for index in range(self.frames.chunks):
+                start, stop = self.frames.chunk_span(index)
+                self._device_frames[start:stop] = torch.from_numpy(self.frames.chunk(index))
+        else:
+            assert self._frames_view is not None
             self._device_frames.copy_(self._frames_view)
+
+    def _check_projection(self) -> None:
+        """After a chunk is compressed: stop before memory runs out, not in it.
+
+        The replay grows until it is full; the chunk just compressed tells how large this
+        game's frames are when compressed, which the start-up check could only assume. If
+        the slots still to fill, at this size, need more than the memory available, raise
+        now (a ResourceError, with the figures), minutes into a run rather than hours.
+        """
+        assert isinstance(self.frames, CompressedFrames)
+        per_slot = self.frames.last_sealed_bytes / self.frames.last_sealed_slots
+        remaining = self.capacity - self.size
+        needed = remaining * per_slot
+        available = psutil.virtual_memory().available
+        if needed > available:
+            raise ResourceError(
+                f"this game's frames compress to {per_slot:.0f} bytes each "
+                f"({self.raw_frame_bytes / per_slot:.1f}x): the {remaining:,} replay slots "
+                f"still to fill need {needed / 2**30:.2f} GiB but only "
+                f"{available / 2**30:.2f} GiB of memory is available; lower replay_capacity"
+            )
 
     # State ----------------------------------------------------------------------------
 
     @property
-    def arrays(self) -> dict[str, np.ndarray]:
-        """The preallocated arrays, by name: what a checkpoint stores chunk by chunk."""
+    def arrays(self) -> dict[str, np.ndarray | CompressedFrames]:
+        """The preallocated arrays, by name: what a checkpoint stores chunk by chunk (the
+        compressed frames, chunk by chunk as they are held)."""
         return {
             "frames": self.frames,
             "actions": self.actions,

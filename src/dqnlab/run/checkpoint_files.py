@@ -16,11 +16,12 @@ import zlib
 from collections.abc import Iterable, Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, BinaryIO
+from typing import Any, BinaryIO, Protocol, runtime_checkable
 
 import numpy as np
 import torch
 
+from dqnlab.algorithm.compression import RAW, decode_chunk
 from dqnlab.errors import DqnlabError
 
 STORE_FORMAT = "dqnlab-training-checkpoint-1"
@@ -34,18 +35,48 @@ class Incomplete(Exception):
     """A checkpoint is incomplete or corrupted; the message is the reason."""
 
 
+@runtime_checkable
+class ChunkedArray(Protocol):
+    """An array held chunk by chunk in its own encoding (the compressed replay frames):
+    a checkpoint writes each chunk's bytes as they are and hands them back to load."""
+
+    shape: tuple[int, ...]
+    dtype: np.dtype
+    chunk_slots: int
+
+    def chunk_encoding(self, index: int) -> str: ...
+
+    def chunk_nbytes(self, index: int) -> int: ...
+
+    def chunk_pieces(self, index: int) -> Iterator[memoryview]: ...
+
+    def load_chunk(self, index: int, encoding: str, data: memoryview) -> None: ...
+
+
+Arrays = Mapping[str, "np.ndarray | ChunkedArray"]
+
+
 @dataclass(frozen=True)
 class FileRecord:
     name: str
     size: int
     crc32: int
+    encoding: str = RAW  # of a replay chunk: raw bytes, or a codec's (`compression`)
 
     def to_json(self) -> dict[str, Any]:
-        return {"file": self.name, "size": self.size, "crc32": f"{self.crc32:08x}"}
+        body = {"file": self.name, "size": self.size, "crc32": f"{self.crc32:08x}"}
+        if self.encoding != RAW:
+            body["encoding"] = self.encoding
+        return body
 
     @staticmethod
     def from_json(data: Mapping[str, Any]) -> FileRecord:
-        return FileRecord(str(data["file"]), int(data["size"]), int(data["crc32"], 16))
+        return FileRecord(
+            str(data["file"]),
+            int(data["size"]),
+            int(data["crc32"], 16),
+            str(data.get("encoding", RAW)),
+        )
 
 
 @dataclass(frozen=True)
@@ -134,7 +165,9 @@ def write_buffer(handle: BinaryIO, data: memoryview) -> None:
     handle.write(data)
 
 
-def write_file(path: Path, pieces: Iterable[memoryview], created: list[Path]) -> FileRecord:
+def write_file(
+    path: Path, pieces: Iterable[memoryview], created: list[Path], encoding: str = RAW
+) -> FileRecord:
     """Write to a temporary name, fsync, rename; never over an existing file."""
     temporary = path.with_name(path.name + ".tmp")
     created.append(temporary)
@@ -151,7 +184,7 @@ def write_file(path: Path, pieces: Iterable[memoryview], created: list[Path]) ->
         raise FileExistsError(errno.EEXIST, f"checkpoint file {path} exists already")
     os.replace(temporary, path)
     created.append(path)
-    return FileRecord(path.name, size, crc)
+    return FileRecord(path.name, size, crc, encoding)
 
 
 def pieces_of(data: memoryview) -> Iterator[memoryview]:
@@ -260,9 +293,10 @@ def _unsafe_reason(error: pickle.UnpicklingError) -> str:
     return f"torch's weights-only unpickler refuses it ({detail.group(1) if detail else message})"
 
 
-def load_arrays(
-    manifest: Manifest, replay_directory: Path, into: Mapping[str, np.ndarray] | None
-) -> None:
+def load_arrays(manifest: Manifest, replay_directory: Path, into: Arrays | None) -> None:
+    """Read every chunk, verifying its CRC-32, into `into` (None: verify only). A raw array
+    is filled in place (a compressed chunk decompressed into it); a `ChunkedArray` gets
+    each chunk's bytes as stored."""
     if into is not None:
         expected = set(manifest.arrays)
         if set(into) != expected:
@@ -278,22 +312,54 @@ def load_arrays(
                     f"the checkpoint's {name} is {record.dtype} {record.shape}, "
                     f"the memory to load it into is {target.dtype.str} {tuple(target.shape)}"
                 )
-            if not target.flags.c_contiguous or not target.flags.writeable:
+            if isinstance(target, ChunkedArray):
+                if target.chunk_slots != record.chunk_slots:
+                    raise DqnlabError(
+                        f"the checkpoint's {name} is in chunks of {record.chunk_slots} slots, "
+                        f"the memory to load it into in chunks of {target.chunk_slots}"
+                    )
+            elif not target.flags.c_contiguous or not target.flags.writeable:
                 raise ValueError(f"{name} must be a writeable C-contiguous array")
         for index, chunk in enumerate(record.chunks):
+            path = replay_directory / chunk.name
             start, stop = record.chunk_span(index)
-            view = target[start:stop].data.cast("B") if target is not None else None
-            read_verified(replay_directory / chunk.name, chunk, view)
+            if target is None:
+                read_verified(path, chunk)
+            elif isinstance(target, ChunkedArray) or chunk.encoding != RAW:
+                data = memoryview(bytearray(chunk.size))
+                read_verified(path, chunk, data)
+                try:
+                    if isinstance(target, ChunkedArray):
+                        target.load_chunk(index, chunk.encoding, data)
+                    else:
+                        decode_chunk(chunk.encoding, data, target[start:stop])
+                except ValueError as error:
+                    raise Incomplete(f"{chunk.name} cannot be decoded ({error})") from None
+            else:
+                read_verified(path, chunk, target[start:stop].data.cast("B"))
 
 
-def check_arrays(arrays: Mapping[str, np.ndarray]) -> int:
-    capacities = {array.shape[0] if array.ndim else 0 for array in arrays.values()}
+def chunk_slots_of(array: np.ndarray | ChunkedArray, default: int) -> int:
+    return array.chunk_slots if isinstance(array, ChunkedArray) else default
+
+
+def chunk_pieces(
+    array: np.ndarray | ChunkedArray, index: int, start: int, stop: int
+) -> tuple[str, int, Iterator[memoryview]]:
+    """Chunk `index` (slots [start, stop)) of `array`: its encoding, size and bytes."""
+    if isinstance(array, ChunkedArray):
+        return array.chunk_encoding(index), array.chunk_nbytes(index), array.chunk_pieces(index)
+    return RAW, array[start:stop].nbytes, pieces_of(array[start:stop].data)
+
+
+def check_arrays(arrays: Arrays) -> int:
+    capacities = {array.shape[0] if len(array.shape) else 0 for array in arrays.values()}
     if len(capacities) > 1 or 0 in capacities:
         raise ValueError(f"replay arrays must share a non-zero first dimension, not {capacities}")
     for name, array in arrays.items():
         if not _ARRAY_NAME.fullmatch(name):
             raise ValueError(f"array name {name!r} must be letters, digits and underscores")
-        if not array.flags.c_contiguous:
+        if not isinstance(array, ChunkedArray) and not array.flags.c_contiguous:
             raise ValueError(f"array {name} must be C-contiguous")
     return capacities.pop() if capacities else 0
 

@@ -40,7 +40,6 @@ import os
 import re
 import shutil
 import warnings
-from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -54,6 +53,8 @@ from dqnlab.run.checkpoint_files import (
     MANIFEST_FILE,
     STEP_DIR,
     ArrayRecord,
+    Arrays,
+    ChunkedArray,
     FileRecord,
     Incomplete,
     Manifest,
@@ -61,6 +62,8 @@ from dqnlab.run.checkpoint_files import (
     check_arrays,
     check_loadable,
     check_sizes,
+    chunk_pieces,
+    chunk_slots_of,
     fsync_directory,
     load_arrays,
     load_state,
@@ -111,7 +114,7 @@ class LoadedCheckpoint:
     manifest: Manifest
     arrays_loaded: bool  # True when `latest(into=...)` already filled the arrays
 
-    def load_arrays(self, into: Mapping[str, np.ndarray]) -> None:
+    def load_arrays(self, into: Arrays) -> None:
         """Fill the preallocated arrays in place, verifying every chunk's CRC-32.
 
         There is no fallback from here: `CheckpointStore.latest(into=...)` loads the arrays
@@ -151,29 +154,29 @@ class CheckpointStore:
         self,
         step: int,
         state: dict[str, Any],
-        arrays: Mapping[str, np.ndarray],
+        arrays: Arrays,
         changed_slots: tuple[int, int] | None,
         config_fingerprint: str,
     ) -> Path:
         """Write a complete checkpoint of `step`; return its directory.
 
-        `arrays` are the replay arrays (same first dimension, the capacity); `changed_slots`
+        `arrays` are the replay arrays (same first dimension, the capacity; a
+        `ChunkedArray` is written chunk by chunk as it holds them); `changed_slots`
         is the ring range [start, stop) of slots written since the last save or load of
         this store (stop < start wraps around; start == stop is nothing), None for all.
         A failed save leaves the earlier checkpoints as they were and no files behind.
         """
         capacity = check_arrays(arrays)
-        changed = changed_chunks(changed_slots, capacity, self.chunk_slots)
         buffer = io.BytesIO()
         torch.save(state, buffer)
         state_bytes = buffer.getbuffer()
         check_loadable(state_bytes)
-        plan = self._plan(arrays, changed)
+        plan = self._plan(arrays, changed_slots, capacity)
         needed = len(state_bytes) + _MANIFEST_SLACK_BYTES
         needed += sum(
-            arrays[name][start:stop].nbytes
+            chunk_pieces(arrays[name], index, start, stop)[1]
             for name, chunks in plan.items()
-            for start, stop, reused in chunks
+            for index, (start, stop, reused) in enumerate(chunks)
             if reused is None
         )
         created: list[Path] = []
@@ -189,14 +192,12 @@ class CheckpointStore:
                 name: ArrayRecord(
                     dtype=arrays[name].dtype.str,
                     shape=tuple(arrays[name].shape),
-                    chunk_slots=self.chunk_slots,
+                    chunk_slots=chunk_slots_of(arrays[name], self.chunk_slots),
                     chunks=tuple(
                         reused
                         if reused is not None
-                        else write_file(
-                            self.replay_directory / f"{name}.{index:05d}.g{generation:09d}.bin",
-                            pieces_of(arrays[name][start:stop].data),
-                            created,
+                        else self._write_chunk(
+                            arrays[name], name, index, start, stop, generation, created
                         )
                         for index, (start, stop, reused) in enumerate(chunks)
                     ),
@@ -247,32 +248,50 @@ class CheckpointStore:
             )
         return final
 
+    def _write_chunk(
+        self,
+        array: np.ndarray | ChunkedArray,
+        name: str,
+        index: int,
+        start: int,
+        stop: int,
+        generation: int,
+        created: list[Path],
+    ) -> FileRecord:
+        encoding, _, pieces = chunk_pieces(array, index, start, stop)
+        path = self.replay_directory / f"{name}.{index:05d}.g{generation:09d}.bin"
+        return write_file(path, pieces, created, encoding)
+
     def _plan(
-        self, arrays: Mapping[str, np.ndarray], changed: set[int] | None
+        self, arrays: Arrays, changed_slots: tuple[int, int] | None, capacity: int
     ) -> dict[str, list[tuple[int, int, FileRecord | None]]]:
-        """Per array, per chunk: its slot span and the earlier file to reuse, or None."""
+        """Per array, per chunk: its slot span and the earlier file to reuse, or None. A
+        file is reused when no slot of its chunk changed and it has the chunk's current
+        encoding (a chunk compressed since is written again, compressed)."""
         plan: dict[str, list[tuple[int, int, FileRecord | None]]] = {}
         for name, array in arrays.items():
+            chunk_slots = chunk_slots_of(array, self.chunk_slots)
+            changed = changed_chunks(changed_slots, capacity, chunk_slots)
             base = self._base.arrays.get(name) if self._base is not None else None
             if (
                 changed is None
                 or base is None
                 or (base.dtype, base.shape, base.chunk_slots)
-                != (
-                    array.dtype.str,
-                    tuple(array.shape),
-                    self.chunk_slots,
-                )
+                != (array.dtype.str, tuple(array.shape), chunk_slots)
             ):
                 base = None
             chunks: list[tuple[int, int, FileRecord | None]] = []
-            for index, start in enumerate(range(0, array.shape[0], self.chunk_slots)):
-                stop = min(start + self.chunk_slots, array.shape[0])
+            for index, start in enumerate(range(0, array.shape[0], chunk_slots)):
+                stop = min(start + chunk_slots, array.shape[0])
                 reused = None
                 if base is not None and changed is not None and index not in changed:
                     record = base.chunks[index]
+                    encoding = chunk_pieces(array, index, start, stop)[0]
                     # Reuse only a file that is still there, whole: else write it again.
-                    if size_of(self.replay_directory / record.name) == record.size:
+                    if (
+                        record.encoding == encoding
+                        and size_of(self.replay_directory / record.name) == record.size
+                    ):
                         reused = record
                 chunks.append((start, stop, reused))
             plan[name] = chunks
@@ -357,7 +376,7 @@ class CheckpointStore:
     def latest(
         self,
         config_fingerprint: str,
-        into: Mapping[str, np.ndarray] | None = None,
+        into: Arrays | None = None,
         map_location: str | torch.device = "cpu",
     ) -> LoadedCheckpoint | None:
         """The newest complete checkpoint, checksums verified; None when there is none.

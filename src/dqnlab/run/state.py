@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import random
 import shutil
+import sys
 from pathlib import Path
 from time import perf_counter
 from typing import Any
@@ -19,6 +20,7 @@ import numpy as np
 import torch
 
 from dqnlab.algorithm.agent import build_agent, epsilon_at
+from dqnlab.algorithm.compression import expected_frame_bytes
 from dqnlab.algorithm.replay import FrameHistory, ReplayMemory, check_memory
 from dqnlab.config import Config, derive_seeds
 from dqnlab.envs import make_env
@@ -67,7 +69,16 @@ class TrainingState:
             seeds[5],
             device=on_device,
             pin_memory=device.type == "cuda" and on_device is None,
+            compression=config.replay_compression,
+            expected_frame_bytes=expected_frame_bytes(config.replay_compression, config.env),
         )
+        if replay is None and config.replay_compression != "none" and not self.replay.compressed:
+            print(
+                f"dqnlab: replay_compression = {config.replay_compression} is for image "
+                f"observations; {config.env}'s are vectors {self.env.observation_shape}, "
+                "stored uncompressed",
+                file=sys.stderr,
+            )
         self.history = FrameHistory(
             config.history_length, self.env.observation_shape, self.env.observation_dtype
         )
@@ -256,8 +267,9 @@ def replay_device(
 
 def check_disk(run_dir: Path, replay: ReplayMemory) -> None:
     """Refuse at start when the disk cannot hold the checkpoints of this replay: at worst
-    two full copies (every chunk rewritten while the previous checkpoint is kept)."""
-    needed = 2 * sum(array.nbytes for array in replay.arrays.values())
+    two full copies (every chunk rewritten while the previous checkpoint is kept), of the
+    size the memory check counted on (compressed only where measured for this game)."""
+    needed = 2 * replay.expected_bytes
     free = shutil.disk_usage(run_dir).free
     if needed > free:
         raise ResourceError(

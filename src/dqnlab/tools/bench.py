@@ -24,6 +24,7 @@ from dqnlab.errors import DqnlabError
 from dqnlab.run.lockstep import play_games
 from dqnlab.run.play import play
 from dqnlab.run.state import TIMED_PARTS, TrainingState, replay_device
+from dqnlab.tools.compression_bench import measure_compression
 from dqnlab.tools.sb3 import peer_available, run_sb3_dqn
 
 
@@ -62,9 +63,13 @@ def run_benchmark(
     rounds: int | None = None,
     peer_learning_starts: int = 5000,
     compile_update: bool = False,
+    compression_fill_steps: int = 0,
+    compression_checkpoint_capacity: int = 0,
 ) -> dict[str, Any]:
     """All figures in one run. With `peers`, Stable-Baselines3's DQN is measured in
-    `rounds` (default 2) alternating with dqnlab's training, with the same settings."""
+    `rounds` (default 2) alternating with dqnlab's training, with the same settings. With
+    `compression_fill_steps`, the compressed replay's figures on that many transitions of
+    the game (`compression_bench.measure_compression`)."""
     device = device or torch.device("cpu")
     rounds = rounds or (2 if peers else 1)
     if peers and not peer_available():
@@ -177,4 +182,17 @@ def run_benchmark(
     single = play(agent, training.eval_env, 4, config.eval_epsilon, max_steps=steps)
     figures["eval_frames_per_second_single"] = single.frames_per_second
     training.close()
+    del replay, training
+    if compression_fill_steps:
+        figures.update(
+            measure_compression(
+                env,
+                compression_fill_steps,
+                steps,
+                device,
+                seed,
+                rounds=3,
+                checkpoint_capacity=compression_checkpoint_capacity,
+            )  # fmt: skip
+        )
     return figures
