@@ -48,3 +48,24 @@ def test_tensorboard_events_are_written(tmp_path: Path) -> None:
     logger.scalars(5, {"train/loss": 0.5})
     logger.close()
     assert list(rundir.tensorboard_dir(tmp_path).glob("events.out.tfevents.*"))
+
+
+def test_a_live_run_is_readable_within_half_a_minute(tmp_path: Path, monkeypatch) -> None:
+    from dqnlab.run import logs
+
+    clock = [1000.0]
+    monkeypatch.setattr(logs.time, "monotonic", lambda: clock[0])
+    logger = RunLogger(tmp_path, tensorboard=False)
+    path = rundir.episodes_path(tmp_path)
+    assert path.read_bytes() == (",".join(EPISODE_FIELDS) + "\r\n").encode()  # header at once
+    logger.episode(_episode(10))
+    clock[0] += logs.FRESH_SECONDS - 1
+    logger.keep_fresh()
+    assert read_csv(path) == []  # still in the write buffer: no write per row
+    clock[0] += 1
+    logger.keep_fresh()
+    assert [row["step"] for row in read_csv(path)] == ["10"]
+    logger.episode(_episode(20))
+    logger.keep_fresh(at_once=True)  # before an evaluation
+    assert [row["step"] for row in read_csv(path)] == ["10", "20"]
+    logger.close()

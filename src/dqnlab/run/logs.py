@@ -4,12 +4,16 @@ from __future__ import annotations
 
 import csv
 import os
+import time
 from pathlib import Path
 from typing import Any
 
 from dqnlab.run import rundir
 
 EPISODE_FIELDS = ("step", "frames", "episode", "score", "steps", "epsilon", "wall_seconds")
+# Logged rows reach the file (the OS's page cache, not an fsync) at most this long after
+# they were logged, so that `tail -f`, a plotting script or a report reads a live run.
+FRESH_SECONDS = 30.0
 EVALUATION_FIELDS = (
     "step", "frames", "mean", "std", "episodes", "steps", "best_mean", "frames_per_second",
     "wall_seconds",
@@ -42,6 +46,7 @@ class RunLogger:
             writer = csv.DictWriter(handle, fieldnames=fields)
             if new:
                 writer.writeheader()
+                handle.flush()
             self._files[name] = handle
             self._writers[name] = writer
         self.tensorboard = None
@@ -52,6 +57,7 @@ class RunLogger:
                 log_dir=str(rundir.tensorboard_dir(run_dir)),
                 purge_step=None if resume_step is None else resume_step + 1,
             )
+        self._pushed_at = time.monotonic()
 
     def episode(self, row: dict[str, Any]) -> None:
         self._writers["episodes"].writerow(row)
@@ -69,6 +75,17 @@ class RunLogger:
         if self.tensorboard:
             for name, value in values.items():
                 self.tensorboard.add_scalar(name, value, step)
+
+    def keep_fresh(self, at_once: bool = False) -> None:
+        """Push what was logged to the files once FRESH_SECONDS have passed since the last
+        push (the training loop calls this every step: it costs a clock read), or
+        `at_once` (before an evaluation, which takes minutes)."""
+        if at_once or time.monotonic() - self._pushed_at >= FRESH_SECONDS:
+            for handle in self._files.values():
+                handle.flush()
+            if self.tensorboard:
+                self.tensorboard.flush()
+            self._pushed_at = time.monotonic()
 
     def flush(self) -> None:
         """Everything logged so far reaches the disk (called before every checkpoint)."""

@@ -161,6 +161,7 @@ class TrainingLoop:
                 if stop.signal_name is not None:
                     interrupted = stop.signal_name
                     break
+                self.logger.keep_fresh()
         return self._finish(interrupted)
 
     # Phases --------------------------------------------------------------------------
@@ -188,6 +189,7 @@ class TrainingLoop:
     def _evaluate(self, step: int) -> None:
         """A periodic evaluation: its mean decides the best network, and the networks kept
         for inspection (`rundir.keep_evaluated_network`)."""
+        self.logger.keep_fresh(at_once=True)
         self.state.check_finite()
         result = self.state.evaluate()
         mean = _periodic_mean(result)
