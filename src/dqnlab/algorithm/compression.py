@@ -175,9 +175,10 @@ class CompressedFrames:
         self._open_index: int | None = None
         self._open = np.zeros((chunk_slots, *frame_shape), dtype=self.dtype)
         self._open_bytes = self._open.data.cast("B")
-        zeros = {}
+        zeros: dict[int, PackedChunk] = {}
         for index in range(self.chunks):
-            slots = self.chunk_span(index)[1] - self.chunk_span(index)[0]
+            start, stop = self.chunk_span(index)
+            slots = stop - start
             if slots not in zeros:
                 zeros[slots] = pack(codec, self._open[:slots], block_slots)
             self._packed[index] = zeros[slots]
@@ -211,7 +212,8 @@ class CompressedFrames:
 
     def chunk_nbytes(self, index: int) -> int:
         """At most the bytes `chunk_pieces` yields, for a free-space check: the chunk being
-        written counts at LZ4's worst case (raw + raw/255 + 16 per block) and its offsets."""
+        written counts above LZ4's worst case (raw + raw/255 + 16 per block) with its
+        offsets (8 per block)."""
         if index == self._open_index:
             start, stop = self.chunk_span(index)
             raw = (stop - start) * self.frame_bytes

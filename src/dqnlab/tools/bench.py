@@ -24,7 +24,6 @@ from dqnlab.errors import DqnlabError
 from dqnlab.run.lockstep import play_games
 from dqnlab.run.play import play
 from dqnlab.run.state import TIMED_PARTS, TrainingState, replay_device
-from dqnlab.tools.compression_bench import measure_compression
 from dqnlab.tools.sb3 import peer_available, run_sb3_dqn
 
 
@@ -39,7 +38,7 @@ def _fill(replay: ReplayMemory, rng: np.random.Generator) -> None:
         replay.add(pool[i % 64], int(i % 4), 0.0, False)
 
 
-def _measure_training(training: TrainingState, steps: int) -> tuple[float, dict[str, float]]:
+def measure_training(training: TrainingState, steps: int) -> tuple[float, dict[str, float]]:
     """Frames/s over `steps` training steps, and the fraction of time in each part."""
     frames, start = training.env.frames, time.perf_counter()
     training.seconds = dict.fromkeys(training.seconds, 0.0)
@@ -138,7 +137,7 @@ def run_benchmark(
         training.advance()
     train_runs, peer_runs = [], []
     for _ in range(rounds):
-        train_runs.append(_measure_training(training, steps))
+        train_runs.append(measure_training(training, steps))
         if peers:
             # The peer's epsilon reaches 0.1 by the end of its replay start: measured alike.
             peer_runs.append(
@@ -184,6 +183,8 @@ def run_benchmark(
     training.close()
     del replay, training
     if compression_fill_steps:
+        from dqnlab.tools.compression_bench import measure_compression  # it imports this module
+
         figures.update(
             measure_compression(
                 env,

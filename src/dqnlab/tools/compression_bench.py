@@ -28,6 +28,7 @@ from dqnlab.config import Config, resolve_config
 from dqnlab.envs import make_env
 from dqnlab.run.checkpoints import CheckpointStore
 from dqnlab.run.state import TrainingState
+from dqnlab.tools.bench import measure_training
 
 
 def fill_by_random_play(
@@ -97,15 +98,6 @@ def _checkpoint(replay: ReplayMemory, directory: Path) -> tuple[int, float]:
     seconds = time.perf_counter() - start
     replay_bytes = sum(path.stat().st_size for path in (saved.parent / "replay").iterdir())
     return replay_bytes, seconds
-
-
-def _train_frames_per_second(training: TrainingState, steps: int) -> float:
-    """Frames/s over `steps` training steps; `training.seconds` adds up the time per part."""
-    frames, start = training.env.frames, time.perf_counter()
-    for _ in range(steps):
-        training.advance()
-    float(training.loss_sum)  # wait for the device
-    return (training.env.frames - frames) / (time.perf_counter() - start)
 
 
 def measure_compression(
@@ -187,12 +179,14 @@ def measure_compression(
         training.steps = config.replay_start_steps + config.epsilon_decay_steps
         for _ in range(50):
             training.advance()
-    for training in trainings.values():
-        training.seconds = dict.fromkeys(training.seconds, 0.0)
+    parts = ("store", "sample", "update", "total")
     runs: dict[str, list[float]] = {"raw": [], "lz4": []}
+    part_seconds = {name: dict.fromkeys(parts, 0.0) for name in trainings}
     for _ in range(rounds):
         for name, training in trainings.items():
-            runs[name].append(_train_frames_per_second(training, train_steps))
+            runs[name].append(measure_training(training, train_steps)[0])
+            for part in parts:
+                part_seconds[name][part] += training.seconds[part]
     chunk_us_per_step = 1e6 * frames.chunk_seconds / max(packed.writes, 1)
     figures["compression_chunk_us_per_step"] = chunk_us_per_step
     figures["compression_chunk_work_fraction_of_step"] = chunk_us_per_step / (
@@ -201,9 +195,9 @@ def measure_compression(
     for name, training in trainings.items():
         # Where the time of a step went, per part: the parts that compression changes
         # (store, sample) stand out from the machine's noise in the others.
-        for part in ("store", "sample", "update", "total"):
+        for part in parts:
             figures[f"compression_step_us_{part}_{name}"] = (
-                1e6 * training.seconds[part] / (rounds * train_steps)
+                1e6 * part_seconds[name][part] / (rounds * train_steps)
             )
         figures[f"compression_train_frames_per_second_{name}"] = float(np.mean(runs[name]))
         figures[f"compression_train_frames_per_second_{name}_runs"] = [
