@@ -386,6 +386,12 @@ def report(
     ] = None,
     frames: Annotated[int, typer.Option(help="Frames of each run's Q-value figures (0: none)")] = 4,
     device: Annotated[str, typer.Option(help="auto, cpu or cuda")] = "auto",
+    reference: Annotated[
+        str,
+        typer.Option(
+            help="Published curves behind Atari games' and the on-track table: dopamine or none"
+        ),
+    ] = "dopamine",
 ) -> None:
     """The results table, the learning curves and the Q-values of the best and worst networks.
 
@@ -393,6 +399,10 @@ def report(
     are several), Nature DQN's and the seed paper's scores, human-normalised scores with
     both human baselines; runs are grouped by the settings in which they differ. A run
     without a final evaluation is evaluated first with its best network (saved, so once).
+    Behind each Atari game's curves, Dopamine's published DQN curves (another protocol,
+    labelled), and an "on track?" table: each run's latest 1M-frame window of training
+    games against them; unfinished runs are accepted (with a note). Under the curves,
+    Nature Fig. 2's held-out mean max-Q and |TD error| where the runs logged them.
     Writes results.md, results.csv, summary.csv, curves-GAME.png/.svg and
     q-values/RUN/ (a figure per frame, overview.png, q_values.csv)."""
     if frames < 0:
@@ -404,11 +414,16 @@ def report(
 
         one_sweep = len(run_dirs) == 1 and not is_run_dir(run_dirs[0])
         out = run_dirs[0] / "report" if one_sweep else Path("report")
-    _report(run_dirs, out, episodes, device, frames)
+    _report(run_dirs, out, episodes, device, frames, reference)
 
 
 def _report(
-    run_dirs: list[Path], out: Path, episodes: int | None, device: str, frames: int = 4
+    run_dirs: list[Path],
+    out: Path,
+    episodes: int | None,
+    device: str,
+    frames: int = 4,
+    reference: str = "dopamine",
 ) -> None:
     from dqnlab.tools.report import best_network_evaluator, format_table, write_report
 
@@ -420,6 +435,7 @@ def _report(
         echo=typer.echo,
         inspect_frames=frames,
         device=torch_device,
+        reference=reference,
     )
     typer.echo(format_table(written))
     for note in written.notes:

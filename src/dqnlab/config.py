@@ -88,6 +88,11 @@ class Config:
     eval_max_episode_frames: int = _setting(
         0, "Episode cap in raw frames during periodic evaluation (0: none)"
     )
+    heldout_transitions: int = _setting(
+        500,
+        "Transitions drawn once from replay when learning starts; their mean max-Q and "
+        "|TD error| are logged at every periodic evaluation (Nature Fig. 2; 0: none)",
+    )
     final_eval_episodes: int = _setting(30, "Episodes of the final evaluation")
     final_eval_max_episode_frames: int = _setting(
         18_000, "Episode cap of the final evaluation in raw frames (5 minutes)"
@@ -169,7 +174,7 @@ def _validate(config: Config) -> None:
     non_negative = (
         "seed", "noop_max_frames", "max_episode_frames", "reward_clip", "td_error_clip",
         "epsilon_decay_steps", "eval_max_episode_frames", "final_eval_max_episode_frames",
-        "checkpoint_period_steps",
+        "checkpoint_period_steps", "heldout_transitions",
     )  # fmt: skip
     for name in non_negative:
         if getattr(config, name) < 0:
@@ -194,7 +199,7 @@ def _validate(config: Config) -> None:
 RESUMABLE_CHANGES = (
     "total_steps", "compile_update", "checkpoint_period_minutes", "checkpoint_period_steps",
     "checkpoints_kept", "on_checkpoint_error", "eval_networks_kept", "replay_storage",
-    "replay_compression",
+    "replay_compression", "heldout_transitions",
 )  # fmt: skip
 
 

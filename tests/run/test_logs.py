@@ -69,3 +69,18 @@ def test_a_live_run_is_readable_within_half_a_minute(tmp_path: Path, monkeypatch
     logger.keep_fresh(at_once=True)  # before an evaluation
     assert [row["step"] for row in read_csv(path)] == ["10", "20"]
     logger.close()
+
+
+def test_an_older_runs_evaluations_get_the_new_columns_on_resume(tmp_path: Path) -> None:
+    old_fields = EVALUATION_FIELDS[: EVALUATION_FIELDS.index("heldout_max_q")]
+    path = rundir.evaluations_path(tmp_path)
+    path.write_text(
+        ",".join(old_fields) + "\n" + ",".join(["100"] + ["1"] * (len(old_fields) - 1)) + "\n"
+    )
+    logger = RunLogger(tmp_path, tensorboard=False, resume_step=100)
+    logger.evaluation(_evaluation(200) | {"heldout_max_q": 0.25, "heldout_td_error": 0.5})
+    logger.close()
+    old, new = read_csv(path)
+    assert list(old) == list(EVALUATION_FIELDS) and old["step"] == "100"
+    assert old["heldout_max_q"] is None  # the older row leaves them empty
+    assert new["step"] == "200" and new["heldout_max_q"] == "0.25"

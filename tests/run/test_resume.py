@@ -127,12 +127,17 @@ def tensorboard_steps(run: Path) -> dict[str, list[int]]:
 def assert_same_run(reference: Path, resumed: Path) -> None:
     state_a, replay_a = final_state(reference)
     state_b, replay_b = final_state(resumed)
+    assert state_a["learner"]["heldout"] is not None  # Nature Fig. 2's set, compared below
     assert_identical(state_a["learner"], state_b["learner"], "learner")
     assert_identical(state_a["run"], state_b["run"], "run")
     assert_identical(replay_a, replay_b, "replay")
     timing = ("wall_seconds", "frames_per_second")
     for name in ("episodes.csv", "evaluations.csv"):
         assert csv_rows(reference / name, timing) == csv_rows(resumed / name, timing), name
+    evaluations = csv_rows(resumed / "evaluations.csv", timing)
+    assert evaluations and all(
+        row["heldout_max_q"] and row["heldout_td_error"] for row in evaluations
+    )
     logged = tensorboard_steps(resumed)
     assert logged == tensorboard_steps(reference) and "eval/mean_score" in logged
     for tag, steps in logged.items():

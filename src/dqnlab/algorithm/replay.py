@@ -237,18 +237,24 @@ class ReplayMemory:
         age = (slots - self.position) % self.capacity
         return ~self.is_last[slots] & (slots != newest) & (age >= self.history_length - 1)
 
-    def sample_indices(self, count: int) -> np.ndarray:
-        """Uniform with replacement over valid transitions, by rejection (as the Lua code)."""
+    def has_transition(self) -> bool:
+        """Whether a complete transition (o_t and o_{t+1}) is stored, so sampling can succeed."""
+        return bool(self._valid(np.arange(self.size)).any())
+
+    def sample_indices(self, count: int, rng: np.random.Generator | None = None) -> np.ndarray:
+        """Uniform with replacement over valid transitions, by rejection (as the Lua code),
+        with the replay's own generator unless `rng` is given."""
+        rng = self.rng if rng is None else rng
         indices = np.empty(count, dtype=np.int64)
         filled = 0
         rejected_rounds = 0
         while filled < count:
-            candidates = self.rng.integers(0, max(self.size, 1), size=2 * (count - filled))
+            candidates = rng.integers(0, max(self.size, 1), size=2 * (count - filled))
             accepted = candidates[self._valid(candidates)][: count - filled]
             indices[filled : filled + len(accepted)] = accepted
             filled += len(accepted)
             rejected_rounds = 0 if len(accepted) else rejected_rounds + 1
-            if rejected_rounds == 20 and not self._valid(np.arange(self.size)).any():
+            if rejected_rounds == 20 and not self.has_transition():
                 raise RuntimeError("the replay memory holds no complete transition yet")
         return indices
 

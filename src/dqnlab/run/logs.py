@@ -16,7 +16,7 @@ EPISODE_FIELDS = ("step", "frames", "episode", "score", "steps", "epsilon", "wal
 FRESH_SECONDS = 30.0
 EVALUATION_FIELDS = (
     "step", "frames", "mean", "std", "episodes", "steps", "best_mean", "frames_per_second",
-    "wall_seconds",
+    "wall_seconds", "heldout_max_q", "heldout_td_error",
 )  # fmt: skip
 
 
@@ -41,6 +41,8 @@ class RunLogger:
         for name, path, fields in files:
             if resume_step is not None and path.exists():
                 _truncate_after(path, resume_step)
+            if path.exists():
+                _extend_header(path, fields)
             new = not path.exists()
             handle = path.open("a", newline="")
             writer = csv.DictWriter(handle, fieldnames=fields)
@@ -70,6 +72,11 @@ class RunLogger:
         if self.tensorboard:
             self.tensorboard.add_scalar("eval/mean_score", row["mean"], row["step"])
             self.tensorboard.add_scalar("eval/episodes", row["episodes"], row["step"])
+            if row.get("heldout_max_q") is not None:  # Nature Fig. 2 (algorithm/heldout.py)
+                self.tensorboard.add_scalar("eval/heldout_max_q", row["heldout_max_q"], row["step"])
+                self.tensorboard.add_scalar(
+                    "eval/heldout_td_error", row["heldout_td_error"], row["step"]
+                )
 
     def scalars(self, step: int, values: dict[str, float]) -> None:
         if self.tensorboard:
@@ -114,6 +121,20 @@ def _truncate_after(path: Path, step: int) -> None:
             kept.append(line)
     temporary = path.with_name(path.name + ".tmp")
     temporary.write_text("".join(kept))
+    os.replace(temporary, path)
+
+
+def _extend_header(path: Path, fields: tuple[str, ...]) -> None:
+    """A file written by an older dqnlab, whose columns are the first of `fields`, gets
+    the new columns in its header (its rows leave them empty), so appended rows line up."""
+    with path.open(newline="") as handle:
+        header = handle.readline().rstrip("\r\n").split(",")
+    if tuple(header) == fields or tuple(header) != fields[: len(header)]:
+        return
+    lines = path.read_text().splitlines(keepends=True)
+    lines[0] = ",".join(fields) + "\n"
+    temporary = path.with_name(path.name + ".tmp")
+    temporary.write_text("".join(lines))
     os.replace(temporary, path)
 
 

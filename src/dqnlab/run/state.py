@@ -21,6 +21,7 @@ import torch
 
 from dqnlab.algorithm.agent import build_agent, epsilon_at
 from dqnlab.algorithm.compression import expected_frame_bytes
+from dqnlab.algorithm.heldout import HeldOutSet, HeldOutStatistics
 from dqnlab.algorithm.replay import FrameHistory, ReplayMemory, check_memory
 from dqnlab.config import Config, derive_seeds
 from dqnlab.envs import make_env
@@ -47,7 +48,7 @@ class TrainingState:
     ) -> None:
         """`replay` replaces the configured replay memory (a benchmark brings a filled one)."""
         self.config = config
-        seeds = derive_seeds(config.seed, 6)
+        seeds = derive_seeds(config.seed, 7)
         random.seed(seeds[0])
         torch.manual_seed(seeds[1])
         self.env = make_env(config, training=True, seed=seeds[2])
@@ -92,6 +93,10 @@ class TrainingState:
         # On CPU reading the loss costs nothing, so a NaN is caught at its step; on a GPU it
         # would synchronise every update, so the training loop checks periodically instead.
         self.check_every_update = device.type == "cpu"
+        # Nature Fig. 2's held-out transitions (`heldout`), drawn at the first step past
+        # replay start with a generator of their own: the run's minibatches stay the same.
+        self.heldout: HeldOutSet | None = None
+        self.heldout_rng = np.random.default_rng(seeds[6])
         self.history.reset(self.env.reset())
 
     def advance(self) -> tuple[float, int] | None:
@@ -136,6 +141,11 @@ class TrainingState:
         seconds["env"] += stepped - acted + reset_seconds  # resets are environment time
         seconds["store"] += stored - stepped - reset_seconds
 
+        if self.heldout is None and config.heldout_transitions and step > config.replay_start_steps:
+            # Lua NeuralQLearner:perceive draws them when numSteps == learn_start + 1.
+            self.heldout = HeldOutSet.draw(
+                self.replay, config.heldout_transitions, self.heldout_rng
+            )
         if step > config.replay_start_steps and step % config.update_period_steps == 0:
             batch = self.replay.sample()
             sampled = perf_counter()
@@ -166,6 +176,16 @@ class TrainingState:
             max_steps=config.eval_steps,
         )
 
+    def heldout_statistics(self) -> HeldOutStatistics | None:
+        """Mean max-Q and mean |TD error| on the held-out transitions (None before they
+        are drawn, or with heldout_transitions = 0)."""
+        if self.heldout is None:
+            return None
+        agent, config = self.agent, self.config
+        return self.heldout.statistics(
+            agent.online, agent.target, config.discount, config.td_error_clip, agent.device
+        )
+
     def mean_loss(self) -> float | None:
         """Mean loss since the last call (one synchronisation), None if no update ran."""
         if not self.losses:
@@ -191,6 +211,8 @@ class TrainingState:
             "history": torch.from_numpy(self.history.frames.copy()),
             "python_random": random.getstate(),
             "torch_random": torch.get_rng_state(),
+            "heldout": None if self.heldout is None else self.heldout.state_dict(),
+            "heldout_rng": self.heldout_rng.bit_generator.state,
         }
         if torch.cuda.is_available():
             state["cuda_random"] = torch.cuda.get_rng_state_all()
@@ -208,10 +230,29 @@ class TrainingState:
         self.env.load_state_dict(state["env"])
         self.eval_env.load_state_dict(state["eval_env"])
         self.history.frames[...] = state["history"].numpy()
+        self._load_heldout(state)
         random.setstate(state["python_random"])
         torch.set_rng_state(state["torch_random"])
         if "cuda_random" in state and torch.cuda.is_available():
             torch.cuda.set_rng_state_all(state["cuda_random"])
+
+    def _load_heldout(self, state: dict[str, Any]) -> None:
+        """The held-out set as saved. A checkpoint written before they existed, or with
+        another heldout_transitions (a setting a run may resume with changed), has none
+        of the right size: the set is drawn at the next step past replay start."""
+        saved = state.get("heldout")
+        if "heldout_rng" in state:
+            self.heldout_rng.bit_generator.state = state["heldout_rng"]
+        self.heldout = HeldOutSet.from_state_dict(saved) if saved is not None else None
+        wanted = self.config.heldout_transitions
+        if self.heldout is not None and len(self.heldout) != wanted:
+            print(
+                f"dqnlab: the checkpoint's held-out set has {len(self.heldout)} transitions, "
+                f"heldout_transitions is now {wanted}: "
+                + ("drawn again from the replay" if wanted else "no held-out statistics"),
+                file=sys.stderr,
+            )
+            self.heldout = None
 
     def check_finite(self) -> None:
         """Stop before a checkpoint or a best network could keep non-finite values."""

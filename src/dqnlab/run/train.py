@@ -192,6 +192,7 @@ class TrainingLoop:
         self.logger.keep_fresh(at_once=True)
         self.state.check_finite()
         result = self.state.evaluate()
+        heldout = self.state.heldout_statistics()
         mean = _periodic_mean(result)
         progress = self.progress
         payload = self._network_payload(step, mean)
@@ -213,6 +214,8 @@ class TrainingLoop:
                 "best_mean": progress.best_mean,
                 "frames_per_second": round(result.frames_per_second, 1),
                 "wall_seconds": round(time.perf_counter() - self.start, 3),
+                "heldout_max_q": None if heldout is None else heldout.max_q,
+                "heldout_td_error": None if heldout is None else heldout.td_error,
             }
         )
         self.last_eval_text = f"{mean:.1f}"

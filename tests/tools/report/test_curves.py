@@ -16,6 +16,7 @@ from dqnlab.tools.report import (
     curve_figure,
     write_report,
 )
+from dqnlab.tools.report.reference import REFERENCE_NAME, REFERENCE_PROTOCOL
 from tests.tools.report.common import (
     CARTPOLE_TINY,
     CountingEvaluator,
@@ -54,11 +55,13 @@ def test_figure_has_a_line_per_configuration_and_a_band_per_seeded_one(
         axes = curve_figure(curve).axes[0]
         assert axes.get_title() == curve.game
         labels = [line.get_label() for line in axes.get_lines()]
-        assert labels == [series.legend_label for series in curve.series]
+        assert curve.reference is not None  # Dopamine's curve behind both games' lines
+        reference = f"{REFERENCE_NAME}: mean of 5 runs, band min–max\n{REFERENCE_PROTOCOL}"
+        assert labels == [series.legend_label for series in curve.series] + [reference]
         legend = axes.get_legend()
         assert [text.get_text() for text in legend.get_texts()] == labels
         bands = [c for c in axes.collections if isinstance(c, PolyCollection)]
-        assert len(bands) == (1 if curve.game == "pong" else 0)
+        assert len(bands) == (2 if curve.game == "pong" else 1)  # seeds' band, reference's
     pong = next(curve for curve in atari_report.curves if curve.game == "pong")
     assert pong.series[0].legend_label == f"{ALL_EQUAL} (2 seeds)"
 

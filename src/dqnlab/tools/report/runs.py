@@ -36,6 +36,10 @@ class PeriodicEvaluation:
     frames: int  # training emulator frames at `step`
     mean: float  # mean score of the games finished within the budget (0 if none)
     episodes: int
+    # Nature Fig. 2 (algorithm/heldout.py): None in runs of an older dqnlab, or before
+    # the held-out transitions were drawn.
+    heldout_max_q: float | None = None
+    heldout_td_error: float | None = None
 
 
 @dataclass
@@ -46,6 +50,12 @@ class RunResults:
     config: Config
     evaluations: list[PeriodicEvaluation]
     final_evaluation: dict[str, Any] | None  # final_evaluation.json's record
+    steps: int = 0  # agent steps of its newest checkpoint (last.pt), 0 before the first
+
+    @property
+    def finished(self) -> bool:
+        """Trained its whole budget (`total_steps`)."""
+        return self.steps >= self.config.total_steps
 
 
 def find_runs(paths: Sequence[Path]) -> list[Path]:
@@ -83,12 +93,22 @@ def load_run(run_dir: Path) -> RunResults:
         try:
             evaluations.append(
                 PeriodicEvaluation(
-                    int(row["step"]), int(row["frames"]), float(row["mean"]), int(row["episodes"])
+                    int(row["step"]),
+                    int(row["frames"]),
+                    float(row["mean"]),
+                    int(row["episodes"]),
+                    _optional_number(row.get("heldout_max_q")),
+                    _optional_number(row.get("heldout_td_error")),
                 )
             )
         except (TypeError, ValueError):  # a line torn by a killed run: fields missing
             continue
-    return RunResults(run_dir, config, evaluations, rundir.load_final_evaluation(run_dir))
+    steps = rundir.network_step(run_dir, "last") or 0
+    return RunResults(run_dir, config, evaluations, rundir.load_final_evaluation(run_dir), steps)
+
+
+def _optional_number(text: str | None) -> float | None:
+    return float(text) if text else None
 
 
 # Grouping ------------------------------------------------------------------------------

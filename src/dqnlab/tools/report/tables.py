@@ -11,6 +11,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from dqnlab.tools.report.curves import Curve, _count_text
+from dqnlab.tools.report.reference import REFERENCE_LABEL, WINDOW_FRAMES, OnTrackRow
 from dqnlab.tools.report.runs import ALL_EQUAL, NOT_GROUPED, Group, RunResults
 from dqnlab.tools.report.scores import BASELINES, ResultRow, SummaryRow
 
@@ -33,6 +34,7 @@ class Report:
     evaluated: list[Path]  # runs whose final evaluation was played for this report
     files: list[Path]
     inspections: list[RunInspection] = field(default_factory=list)
+    on_track: list[OnTrackRow] = field(default_factory=list)
 
 
 @dataclass
@@ -179,13 +181,56 @@ def _aligned(headers: Sequence[str], rows: Sequence[Sequence[str]]) -> str:
     )
 
 
+ON_TRACK_HEADERS = (
+    "Game", "Configuration", "Seed", "Trained", "Window", "Training games", "Mean score",
+    "Reference mean", "Reference range", "Verdict", "Latest evaluation",
+)  # fmt: skip
+
+
+def _on_track_cells(row: OnTrackRow, seed: int) -> list[str]:
+    window = ""
+    if row.window is not None:
+        window = f"{row.window}–{row.window + 1}M frames"
+        if not row.window_complete:
+            window += f" (to {row.frames / WINDOW_FRAMES:.2f}M so far)"
+    reference_range = (
+        f"{_score_text(row.reference_low)} to {_score_text(row.reference_high)}"
+        if row.reference_low is not None
+        else ""
+    )
+    trained = f"{_count_text(row.steps)} steps, {_count_text(row.frames)} frames"
+    return [
+        row.game,
+        row.configuration,
+        str(seed),
+        trained + ("" if row.finished else " (unfinished)"),
+        window,
+        str(row.games),
+        _score_text(row.score),
+        _score_text(row.reference_mean),
+        reference_range,
+        row.verdict or (row.why_none or ""),
+        _score_text(row.last_eval_mean),
+    ]
+
+
+def _on_track_table(report: Report) -> tuple[Sequence[str], list[list[str]]]:
+    seeds = {run.run_dir: run.config.seed for run in report.runs}
+    return ON_TRACK_HEADERS, [_on_track_cells(row, seeds[row.run_dir]) for row in report.on_track]
+
+
 def format_table(report: Report) -> str:
-    """The results table (and the scores across games) as aligned text for a terminal."""
-    if not report.rows:
-        return "no run has a final evaluation: nothing to tabulate"
-    text = _aligned(TABLE_HEADERS, [_table_cells(row) for row in report.rows])
+    """The results table (and the scores across games, and the on-track table) as aligned
+    text for a terminal."""
+    if report.rows:
+        text = _aligned(TABLE_HEADERS, [_table_cells(row) for row in report.rows])
+    else:
+        text = "no run has a final evaluation: nothing to tabulate"
     if report.summary:
         text += "\n\n" + _aligned(SUMMARY_HEADERS, _summary_cells(report.summary))
+    if report.on_track:
+        text += f"\n\nOn track? Training games against {REFERENCE_LABEL}\n"
+        text += _aligned(*_on_track_table(report))
     return text
 
 
@@ -207,6 +252,9 @@ def format_markdown(report: Report, out_dir: Path | None = None) -> str:
     if report.summary:
         parts += ["## Across games", ""]
         parts += [_markdown_table(SUMMARY_HEADERS, _summary_cells(report.summary)), ""]
+    if report.on_track:
+        parts += ["## On track?", "", ON_TRACK_TEXT, ""]
+        parts += [_markdown_table(*_on_track_table(report)), ""]
     pictures = [
         (curve.game, path)
         for curve in report.curves
@@ -292,5 +340,24 @@ LEGEND = [
     "the budget) against training steps, training frames on the top axis (measured from "
     "evaluations.csv: action_repeat_frames per step plus no-op starts). One line per "
     "configuration, the mean over the seeds that have an evaluation at that step; shaded: "
-    "lowest to highest seed (configurations with 2 seeds or more).",
+    "lowest to highest seed (configurations with 2 seeds or more). Behind them (Atari "
+    f"games, unless `--reference none`): {REFERENCE_LABEL}, the mean of its runs in each "
+    "1M-frame window as a dashed step, lowest to highest run shaded grey. Under them, where "
+    "the runs logged them: Nature Fig. 2's held-out statistics at each periodic evaluation, "
+    "the mean max over actions of the target network's Q at the next states of "
+    "heldout_transitions transitions drawn once from the replay at replay start, and their "
+    "mean absolute TD error, clipped at td_error_clip as in the update (DeepMind's "
+    "NeuralQLearner compute_validation_statistics: v_avg and tderr_avg).",
 ]
+
+ON_TRACK_TEXT = (
+    "Each run measured as the reference measures: the mean raw score of its training games "
+    "(whole games, at the training epsilon; `episodes.csv`) that ended in its latest 1M-frame "
+    "window with a finished game, beside the reference's mean and lowest-to-highest run in "
+    f"the same window. Reference: {REFERENCE_LABEL} (data/README.md); its training epsilon "
+    "is 0.01 after 1M frames and its actions are sticky, while the nature preset trains at "
+    "an epsilon falling from 1 to 0.1 over 4M frames, so early windows of a nature run sit "
+    "lower by design: read the verdict as a sanity check, not a test. A window still being "
+    "filled says how far it got. **Latest evaluation**: the run's latest periodic evaluation "
+    "(eval_epsilon), the learning curve's last point."
+)

@@ -24,10 +24,12 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from dqnlab.config import DEFAULT_EVALUATION_SEED
+from dqnlab.envs import is_atari
 from dqnlab.errors import DqnlabError
 from dqnlab.run import rundir
 from dqnlab.run.evaluate import final_evaluation, final_evaluation_record
 from dqnlab.tools.report.curves import curve_figure, learning_curves
+from dqnlab.tools.report.reference import REFERENCES, load_reference_curves, on_track_rows
 from dqnlab.tools.report.runs import Group, RunResults, find_runs, group_runs, load_run
 from dqnlab.tools.report.scores import load_reference_scores, result_rows, summary_rows
 from dqnlab.tools.report.tables import (
@@ -75,12 +77,23 @@ def build_report(
     *,
     evaluate_missing: Callable[[Path], dict[str, Any]] | None = None,
     echo: Callable[[str], object] | None = None,
+    reference: str = "dopamine",
 ) -> Report:
     """Read the runs (RUN_DIR or sweep directories), play the missing final evaluations
     with `evaluate_missing` (None: leave those runs out of the table) and compute the
-    table and the curves; writes nothing but what `evaluate_missing` saves."""
+    table and the curves; writes nothing but what `evaluate_missing` saves. `reference`:
+    "dopamine" draws its published curves behind the Atari games' curves and sets the
+    runs beside them in the on-track table; "none" leaves both out."""
+    if reference not in REFERENCES:
+        raise DqnlabError(f"--reference {reference!r} is not one of: {', '.join(REFERENCES)}")
     runs = [load_run(path) for path in find_runs(run_dirs)]
     notes: list[str] = []
+    for run in runs:
+        if not run.finished:
+            notes.append(
+                f"{run.run_dir}: unfinished (newest checkpoint at step {run.steps} of "
+                f"{run.config.total_steps}): its scores are of its best network so far"
+            )
     evaluated = _complete_final_evaluations(runs, evaluate_missing, echo, notes)
     groups = group_runs(runs)
     notes.extend(_group_notes(groups))
@@ -99,10 +112,27 @@ def build_report(
                     f"{run.run_dir}: {empty} periodic evaluation(s) finished no game within "
                     "eval_steps; the curve shows 0 there (DeepMind's Lua convention)"
                 )
-    for game in dict.fromkeys(group.env for group in groups):
+    games = list(dict.fromkeys(group.env for group in groups))
+    for game in games:
         if not any(curve.game == game for curve in curves):
             notes.append(f"{game}: no run has a periodic evaluation yet: no figure")
-    return Report(runs, groups, rows, summary_rows(rows), curves, notes, evaluated, [])
+    on_track = []
+    if reference == "dopamine":
+        references = load_reference_curves(games)
+        for curve in curves:
+            curve.reference = references.get(curve.game)
+        on_track = on_track_rows(
+            [(run, group.label) for group in groups for run in group.runs], references
+        )
+        missing = [game for game in games if is_atari(game) and game not in references]
+        if missing:
+            notes.append(
+                f"Dopamine's curves do not cover {', '.join(missing)}: no reference curve "
+                "or verdict for them"
+            )
+    report = Report(runs, groups, rows, summary_rows(rows), curves, notes, evaluated, [])
+    report.on_track = on_track
+    return report
 
 
 def write_report(
@@ -113,6 +143,7 @@ def write_report(
     echo: Callable[[str], object] | None = None,
     inspect_frames: int = 0,
     device: torch.device | None = None,
+    reference: str = "dopamine",
 ) -> Report:
     """`build_report`, then write results.md, results.csv, summary.csv (2 games or more)
     and curves-GAME.png/.svg into `out_dir`. `evaluate_missing`: see
@@ -121,7 +152,9 @@ def write_report(
     many frames (`inspect_report_runs`), into `out_dir`/q-values/RUN/. What an earlier
     report left in `out_dir` and this one does not write again (curves of other games,
     a summary.csv, Q-values of other runs) is removed: every file is of this report."""
-    report = build_report(run_dirs, evaluate_missing=evaluate_missing, echo=echo)
+    report = build_report(
+        run_dirs, evaluate_missing=evaluate_missing, echo=echo, reference=reference
+    )
     out_dir.mkdir(parents=True, exist_ok=True)
     earlier = [*out_dir.glob("curves-*.png"), *out_dir.glob("curves-*.svg"), out_dir / SUMMARY_CSV]
     earlier_inspections = [p for p in (out_dir / Q_VALUES_DIR).glob("*") if p.is_dir()]
