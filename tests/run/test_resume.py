@@ -140,6 +140,9 @@ def assert_same_run(reference: Path, resumed: Path) -> None:
     )
     logged = tensorboard_steps(resumed)
     assert logged == tensorboard_steps(reference) and "eval/mean_score" in logged
+    assert (
+        logged["eval/heldout_max_q"] == logged["eval/mean_score"] == logged["eval/heldout_td_error"]
+    )
     for tag, steps in logged.items():
         assert steps == sorted(steps) and len(steps) == len(set(steps)), tag  # no duplicates
 

@@ -4,13 +4,16 @@
   configurations (the seeds of each);
 - `scores`: reference scores, human-normalised scores, the table's rows and the scores
   across games;
-- `curves`: the learning curves and their figures;
+- `reference`: Dopamine's published curves and the "on track?" verdicts against them;
+- `curves`: the learning curves and their figures (the reference and Nature Fig. 2's
+  held-out figures drawn with them);
 - `tables`: what a report holds (`Report`), its CSV records, console table and results.md;
 - `write`: `build_report` and `write_report`, the only module with side effects: it plays
   missing final evaluations, inspects Q-values, writes the outputs and removes stale ones.
 
-Imports point one way: scores and curves import runs, tables imports those three, write
-imports them all, and nothing but this file imports write.
+Imports point one way: scores and reference import runs, curves imports reference and
+runs, tables imports those four, write imports them all, and nothing but this file
+imports write.
 """
 
 from dqnlab.tools.report.curves import Curve, CurveSeries, curve_figure, learning_curves
