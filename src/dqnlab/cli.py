@@ -7,12 +7,15 @@ import json
 import sys
 import warnings
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
 import typer
 
 from dqnlab.config import DEFAULT_EVALUATION_SEED
 from dqnlab.errors import DqnlabError
+
+if TYPE_CHECKING:
+    from dqnlab.tools.report.aggregate import AggregateSettings
 
 app = typer.Typer(
     add_completion=False,
@@ -392,6 +395,20 @@ def report(
             help="Published curves behind Atari games' and the on-track table: dopamine or none"
         ),
     ] = "dopamine",
+    baseline: Annotated[
+        str,
+        typer.Option(
+            help="Human score of the aggregates across games: human (dqn_zoo's) or human_nature (the Nature paper's tester)"
+        ),
+    ] = "human",
+    # The defaults of aggregate.AggregateSettings, not imported here (the report package
+    # imports torch); tests/tools/report/test_aggregate.py checks that they agree.
+    bootstrap_reps: Annotated[
+        int, typer.Option(help="Repetitions of the aggregates' stratified bootstrap")
+    ] = 10_000,
+    bootstrap_seed: Annotated[
+        int, typer.Option(help="Seed of the aggregates' stratified bootstrap")
+    ] = 0,
 ) -> None:
     """The results table, the learning curves and the Q-values of the best and worst networks.
 
@@ -403,8 +420,16 @@ def report(
     labelled), and an "on track?" table: each run's latest 1M-frame window of training
     games against them; unfinished runs are accepted (with a note). Under the curves,
     Nature Fig. 2's held-out mean max-Q and |TD error| where the runs logged them.
-    Writes results.md, results.csv, summary.csv, curves-GAME.png/.svg and
+    With two games or more, the aggregates across games with 95% stratified bootstrap
+    confidence intervals (Agarwal et al. 2021, with rliable): IQM, median, mean and
+    optimality gap of the human-normalised scores, performance profiles, and the
+    probability of improvement between configurations.
+    Writes results.md, results.csv, summary.csv, curves-GAME.png/.svg, aggregates.csv,
+    aggregates.png/.svg, performance-profiles.png/.svg, probability-of-improvement.csv and
     q-values/RUN/ (a figure per frame, overview.png, q_values.csv)."""
+    from dqnlab.tools.report.aggregate import AggregateSettings
+
+    aggregate = AggregateSettings(baseline, bootstrap_reps, bootstrap_seed)  # checked first
     if frames < 0:
         raise DqnlabError(f"--frames {frames} must be 0 or more")
     if episodes is not None and episodes <= 0:
@@ -414,7 +439,7 @@ def report(
 
         one_sweep = len(run_dirs) == 1 and not is_run_dir(run_dirs[0])
         out = run_dirs[0] / "report" if one_sweep else Path("report")
-    _report(run_dirs, out, episodes, device, frames, reference)
+    _report(run_dirs, out, episodes, device, frames, reference, aggregate)
 
 
 def _report(
@@ -424,6 +449,7 @@ def _report(
     device: str,
     frames: int = 4,
     reference: str = "dopamine",
+    aggregate: AggregateSettings | None = None,
 ) -> None:
     from dqnlab.tools.report import best_network_evaluator, format_table, write_report
 
@@ -436,6 +462,7 @@ def _report(
         inspect_frames=frames,
         device=torch_device,
         reference=reference,
+        aggregate=aggregate,
     )
     typer.echo(format_table(written))
     for note in written.notes:
@@ -443,6 +470,9 @@ def _report(
     figures = [path for curve in written.curves for path in curve.files if path.suffix == ".png"]
     for path in figures:
         typer.echo(f"learning curves: {path}")
+    for path in written.aggregates.files if written.aggregates is not None else []:
+        if path.suffix == ".png":
+            typer.echo(f"aggregates across games: {path}")
     for item in written.inspections:
         picture = item.inspection.overview_path or item.out_dir
         typer.echo(f"Q-values of {item.run_dir}: {picture}")

@@ -15,6 +15,7 @@ from dqnlab.run.rundir import prepare_run_dir, save_final_evaluation
 from dqnlab.run.train import train
 from dqnlab.tools.report import (
     ALL_EQUAL,
+    AggregateSettings,
     Report,
     best_network_evaluator,
 )
@@ -48,6 +49,8 @@ CARTPOLE_TINY = {
 # Hand-written final evaluations: pong seeds 0 and 1, breakout seed 0.
 PONG_SCORES = {0: [-21.0, -19.0], 1: [-10.0, -12.0]}
 BREAKOUT_SCORES = [10.0, 20.0, 30.0]
+# A small bootstrap for the aggregates across games of reports of two games: CI has minutes.
+FEW_REPS = AggregateSettings(bootstrap_repetitions=200)
 
 
 def train_run(run_dir: Path, preset: str, **settings: Any) -> Path:

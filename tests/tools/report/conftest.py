@@ -15,6 +15,7 @@ from tests.tools.report.common import (
     ATARI_TINY,
     BREAKOUT_SCORES,
     CARTPOLE_TINY,
+    FEW_REPS,
     PONG_SCORES,
     must_not_evaluate,
     train_run,
@@ -47,7 +48,9 @@ def atari_runs(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
 @pytest.fixture(scope="package")
 def atari_report(atari_runs: dict[str, Path], tmp_path_factory: pytest.TempPathFactory) -> Report:
     out = tmp_path_factory.mktemp("atari-report")
-    return write_report(list(atari_runs.values()), out, evaluate_missing=must_not_evaluate)
+    return write_report(
+        list(atari_runs.values()), out, evaluate_missing=must_not_evaluate, aggregate=FEW_REPS
+    )
 
 
 @pytest.fixture(scope="package")

@@ -24,6 +24,7 @@ from dqnlab.tools.report import (
     write_report,
 )
 from tests.tools.report.common import (
+    FEW_REPS,
     CountingEvaluator,
     must_not_evaluate,
     row_of,
@@ -191,9 +192,14 @@ def test_a_report_written_again_leaves_only_its_own_files(
 ) -> None:
     out = tmp_path / "out"
     first = write_report(
-        list(atari_runs.values()), out, evaluate_missing=must_not_evaluate, inspect_frames=1
+        list(atari_runs.values()),
+        out,
+        evaluate_missing=must_not_evaluate,
+        inspect_frames=1,
+        aggregate=FEW_REPS,
     )
     assert (out / "summary.csv").is_file() and (out / "curves-pong.png").is_file()
+    assert (out / "aggregates.csv").is_file() and (out / "performance-profiles.svg").is_file()
     assert len(first.inspections) == 3
     (out / "notes.txt").write_text("mine")  # not a report's file: kept
     write_report([atari_runs["breakout-s0"]], out, evaluate_missing=must_not_evaluate)

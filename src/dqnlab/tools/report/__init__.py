@@ -1,4 +1,5 @@
-"""Reports: the results table and the learning curves of a set of runs.
+"""Reports: the results table, the learning curves and the aggregates across games of a
+set of runs.
 
 - `runs`: find run directories (a run, or a sweep of runs), read them, group them into
   configurations (the seeds of each);
@@ -7,15 +8,36 @@
 - `reference`: Dopamine's published curves and the "on track?" verdicts against them;
 - `curves`: the learning curves and their figures (the reference and Nature Fig. 2's
   held-out figures drawn with them);
+- `aggregate`: the aggregates across games with stratified bootstrap confidence
+  intervals (IQM, median, mean, optimality gap), performance profiles and probabilities
+  of improvement, computed with rliable, and their figures;
 - `tables`: what a report holds (`Report`), its CSV records, console table and results.md;
 - `write`: `build_report` and `write_report`, the only module with side effects: it plays
   missing final evaluations, inspects Q-values, writes the outputs and removes stale ones.
 
 Imports point one way: scores and reference import runs, curves imports reference and
-runs, tables imports those four, write imports them all, and nothing but this file
-imports write.
+runs, aggregate imports runs and scores, tables imports those five, write imports them
+all, and nothing but this file imports write.
 """
 
+from dqnlab.tools.report.aggregate import (
+    DEFAULT_BOOTSTRAP_REPETITIONS,
+    DEFAULT_BOOTSTRAP_SEED,
+    STATISTICS,
+    Aggregates,
+    AggregateSettings,
+    ConfigurationAggregate,
+    Improvement,
+    Interval,
+    Profile,
+    aggregate_scores,
+    aggregate_statistics,
+    fraction_above,
+    interval_figure,
+    probability_of_improvement,
+    profile_figure,
+    score_matrices,
+)
 from dqnlab.tools.report.curves import Curve, CurveSeries, curve_figure, learning_curves
 from dqnlab.tools.report.runs import (
     ALL_EQUAL,
@@ -29,6 +51,7 @@ from dqnlab.tools.report.runs import (
     load_run,
 )
 from dqnlab.tools.report.scores import (
+    BASELINE_NAMES,
     BASELINES,
     SEED_PAPER_SCORES,
     ReferenceScores,
@@ -41,6 +64,9 @@ from dqnlab.tools.report.scores import (
 )
 from dqnlab.tools.report.tables import LEGEND, Report, RunInspection, format_markdown, format_table
 from dqnlab.tools.report.write import (
+    AGGREGATE_FILES,
+    AGGREGATES_CSV,
+    IMPROVEMENT_CSV,
     Q_VALUES_DIR,
     RESULTS_CSV,
     RESULTS_MD,
@@ -52,25 +78,41 @@ from dqnlab.tools.report.write import (
 )
 
 __all__ = [
+    "AGGREGATES_CSV",
+    "AGGREGATE_FILES",
     "ALL_EQUAL",
     "BASELINES",
+    "BASELINE_NAMES",
+    "DEFAULT_BOOTSTRAP_REPETITIONS",
+    "DEFAULT_BOOTSTRAP_SEED",
+    "IMPROVEMENT_CSV",
     "LEGEND",
     "NOT_GROUPED",
     "Q_VALUES_DIR",
     "RESULTS_CSV",
     "RESULTS_MD",
     "SEED_PAPER_SCORES",
+    "STATISTICS",
     "SUMMARY_CSV",
+    "AggregateSettings",
+    "Aggregates",
+    "ConfigurationAggregate",
     "Curve",
     "CurveSeries",
     "Group",
+    "Improvement",
+    "Interval",
     "PeriodicEvaluation",
+    "Profile",
     "ReferenceScores",
     "Report",
     "ResultRow",
     "RunInspection",
     "RunResults",
     "SummaryRow",
+    "aggregate_scores",
+    "aggregate_statistics",
+    "fraction_above",
     "best_network_evaluator",
     "build_report",
     "curve_figure",
@@ -80,11 +122,15 @@ __all__ = [
     "group_runs",
     "human_normalised",
     "inspect_report_runs",
+    "interval_figure",
     "label_keys",
     "learning_curves",
     "load_reference_scores",
     "load_run",
+    "probability_of_improvement",
+    "profile_figure",
     "result_rows",
+    "score_matrices",
     "summary_rows",
     "write_report",
 ]

@@ -29,8 +29,10 @@ SEED_PAPER_SCORES: dict[str, tuple[float, float]] = {
     "seaquest": (6309.0, 1027.0),
 }
 
-# The two human baselines: dqn_zoo's and the Nature paper's (ED Table 2).
+# The two human baselines: dqn_zoo's and the Nature paper's (ED Table 2), and their
+# names in tables and figures.
 BASELINES = ("human", "human_nature")
+BASELINE_NAMES = {"human": "dqn_zoo human", "human_nature": "Nature human"}
 
 
 # Reference scores ----------------------------------------------------------------------

@@ -1,6 +1,6 @@
 """Tables: what a report holds (`Report`), and its forms as text: the CSV records and
-their columns, the console table and results.md with its legend. Text only: `write.py`
-writes the files.
+their columns, the console table and results.md with its legend, the aggregates across
+games among them. Text only: `write.py` writes the files.
 """
 
 from __future__ import annotations
@@ -10,6 +10,14 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from dqnlab.tools.report.aggregate import (
+    CONFIDENCE,
+    RESAMPLED_GAMES,
+    STATISTIC_NAMES,
+    STATISTICS,
+    Aggregates,
+    Interval,
+)
 from dqnlab.tools.report.curves import Curve, _count_text
 from dqnlab.tools.report.reference import REFERENCE_LABEL, WINDOW_FRAMES, OnTrackRow
 from dqnlab.tools.report.runs import ALL_EQUAL, NOT_GROUPED, Group, RunResults
@@ -35,6 +43,7 @@ class Report:
     files: list[Path]
     inspections: list[RunInspection] = field(default_factory=list)
     on_track: list[OnTrackRow] = field(default_factory=list)
+    aggregates: Aggregates | None = None  # two games or more with human-normalised scores
 
 
 @dataclass
@@ -172,6 +181,145 @@ def _summary_cells(summary: Sequence[SummaryRow]) -> list[list[str]]:
     return cells
 
 
+# Aggregates across games: a table of the configurations, one of the probabilities of
+# improvement (two configurations or more), each with a caption naming the baseline and
+# the bootstrap.
+
+AGGREGATE_COLUMNS = (
+    "statistic", "configuration", "baseline", "games", "game_ids", "seeds_per_game",
+    "resampled", "estimate_percent", "low_percent", "high_percent", "confidence",
+    "bootstrap_repetitions", "bootstrap_seed",
+)  # fmt: skip
+IMPROVEMENT_COLUMNS = (
+    "configuration", "other", "baseline", "games", "game_ids", "seeds_per_game",
+    "other_seeds_per_game", "resampled", "probability", "low", "high", "confidence",
+    "bootstrap_repetitions", "bootstrap_seed",
+)  # fmt: skip
+AGGREGATE_HEADERS = ("Configuration", "Seeds/game", "Resampled") + tuple(
+    STATISTIC_NAMES[name] for name in STATISTICS
+)
+IMPROVEMENT_HEADERS = ("X", "Y", "P(X > Y)", "Resampled")
+
+
+def _aggregate_records(aggregates: Aggregates) -> list[dict[str, Any]]:
+    """One record per statistic and configuration, with the bootstrap behind it."""
+    return [
+        {
+            "statistic": statistic,
+            "configuration": item.configuration,
+            **_aggregate_common(aggregates),
+            "seeds_per_game": item.seeds_per_game,
+            "resampled": item.resampled,
+            "estimate_percent": item.statistic(statistic).estimate,
+            "low_percent": item.statistic(statistic).low,
+            "high_percent": item.statistic(statistic).high,
+            **_bootstrap_common(aggregates),
+        }
+        for statistic in STATISTICS
+        for item in aggregates.configurations
+    ]
+
+
+def _improvement_records(aggregates: Aggregates) -> list[dict[str, Any]]:
+    seeds = {item.configuration: item.seeds_per_game for item in aggregates.configurations}
+    return [
+        {
+            "configuration": item.configuration,
+            "other": item.other,
+            **_aggregate_common(aggregates),
+            "seeds_per_game": seeds[item.configuration],
+            "other_seeds_per_game": seeds[item.other],
+            "resampled": item.resampled,
+            "probability": item.probability.estimate,
+            "low": item.probability.low,
+            "high": item.probability.high,
+            **_bootstrap_common(aggregates),
+        }
+        for item in aggregates.improvements
+    ]
+
+
+def _aggregate_common(aggregates: Aggregates) -> dict[str, Any]:
+    return {
+        "baseline": aggregates.baseline,
+        "games": len(aggregates.games),
+        "game_ids": ";".join(aggregates.games),
+    }
+
+
+def _bootstrap_common(aggregates: Aggregates) -> dict[str, Any]:
+    return {
+        "confidence": CONFIDENCE,
+        "bootstrap_repetitions": aggregates.bootstrap_repetitions,
+        "bootstrap_seed": aggregates.bootstrap_seed,
+    }
+
+
+def _interval_text(interval: Interval, digits: int = 1) -> str:
+    return f"{interval.estimate:.{digits}f} [{interval.low:.{digits}f}, {interval.high:.{digits}f}]"
+
+
+def _resampled_text(resampled: str) -> str:
+    return "games" if resampled == RESAMPLED_GAMES else "runs within games"
+
+
+def _aggregate_cells(aggregates: Aggregates) -> list[list[str]]:
+    return [
+        [item.configuration, str(item.seeds_per_game), _resampled_text(item.resampled)]
+        + [_interval_text(item.statistic(statistic)) for statistic in STATISTICS]
+        for item in aggregates.configurations
+    ]
+
+
+def _improvement_cells(aggregates: Aggregates) -> list[list[str]]:
+    return [
+        [
+            item.configuration,
+            item.other,
+            _interval_text(item.probability, digits=2),
+            _resampled_text(item.resampled),
+        ]
+        for item in aggregates.improvements
+    ]
+
+
+def _aggregate_caption(aggregates: Aggregates) -> str:
+    return (
+        f"Aggregates across {len(aggregates.games)} games, HNS % ({aggregates.baseline_name}): "
+        f"estimate [interval]; {aggregates.bootstrap_text}"
+    )
+
+
+def _improvement_caption(aggregates: Aggregates) -> str:
+    return (
+        f"Probability of improvement of X over Y, HNS % ({aggregates.baseline_name}) over the "
+        f"same {len(aggregates.games)} games: estimate [interval]; {aggregates.bootstrap_text}"
+    )
+
+
+def _aggregate_text(aggregates: Aggregates) -> str:
+    text = _aggregate_caption(aggregates) + "\n"
+    text += _aligned(AGGREGATE_HEADERS, _aggregate_cells(aggregates))
+    if aggregates.improvements:
+        text += "\n\n" + _improvement_caption(aggregates) + "\n"
+        text += _aligned(IMPROVEMENT_HEADERS, _improvement_cells(aggregates))
+    return text
+
+
+def _aggregate_markdown(aggregates: Aggregates, out_dir: Path | None) -> list[str]:
+    parts = ["## Aggregates across games", "", _aggregate_caption(aggregates) + ".", ""]
+    parts += [f"Games: {', '.join(aggregates.games)}.", ""]
+    parts += [_markdown_table(AGGREGATE_HEADERS, _aggregate_cells(aggregates)), ""]
+    for path in aggregates.files:
+        if path.suffix == ".png":
+            link = path.name if out_dir is not None and path.parent == out_dir else str(path)
+            parts += [f"![{path.stem}]({link})", ""]
+    if aggregates.improvements:
+        parts += ["### Probability of improvement", "", _improvement_caption(aggregates) + ".", ""]
+        parts += [_markdown_table(IMPROVEMENT_HEADERS, _improvement_cells(aggregates)), ""]
+    return parts
+
+
 def _aligned(headers: Sequence[str], rows: Sequence[Sequence[str]]) -> str:
     widths = [max(len(cell) for cell in column) for column in zip(headers, *rows, strict=True)]
     lines = [headers, ["-" * width for width in widths], *rows]
@@ -231,6 +379,8 @@ def format_table(report: Report) -> str:
     if report.on_track:
         text += f"\n\nOn track? Training games against {REFERENCE_LABEL}\n"
         text += _aligned(*_on_track_table(report))
+    if report.aggregates is not None:
+        text += "\n\n" + _aggregate_text(report.aggregates)
     return text
 
 
@@ -255,6 +405,8 @@ def format_markdown(report: Report, out_dir: Path | None = None) -> str:
     if report.on_track:
         parts += ["## On track?", "", ON_TRACK_TEXT, ""]
         parts += [_markdown_table(*_on_track_table(report)), ""]
+    if report.aggregates is not None:
+        parts += _aggregate_markdown(report.aggregates, out_dir)
     pictures = [
         (curve.game, path)
         for curve in report.curves
@@ -335,6 +487,20 @@ LEGEND = [
     "- **Across games**: the median and mean HNS % of each configuration over its games "
     "that have the baseline (at least 2), with Nature DQN's over the same games where "
     "every one of them has a Nature DQN score.",
+    '- **Aggregates across games** (Agarwal et al., NeurIPS 2021, "Deep Reinforcement '
+    'Learning at the Edge of the Statistical Precipice", computed with their library '
+    "rliable): each run's final-evaluation mean as HNS % with one human baseline "
+    "(`--baseline`), over the games every configuration has. **IQM**: the interquartile "
+    "mean, the mean of the middle half of all run scores (runs × games), less swayed by "
+    "a few games than the mean and less noisy than the median; **Median** and **Mean**: of "
+    "the games' means over their runs (those kept: see the notes); **Optimality gap**: "
+    "100 minus the mean score with scores above human counted as 100 (how far from human; "
+    "lower is better). In brackets: "
+    "the 95% percentile confidence interval of a stratified bootstrap (**Resampled**: the "
+    "runs within each game; the games where a configuration has one seed per game). "
+    "**Performance profiles**: the fraction of all runs scoring above each τ. **P(X > Y)**: "
+    "the probability of improvement, the chance that a run of X scores higher than a run "
+    "of Y on the same game (ties half), averaged over the games; P(Y > X) = 1 − P(X > Y).",
     "- **Learning curves**: the mean score of the periodic evaluations (eval_steps agent "
     "steps at eval_epsilon every eval_period_steps; the mean of the games finished within "
     "the budget) against training steps, training frames on the top axis (measured from "

@@ -11,7 +11,11 @@ writes into the output directory:
 - `results.md`: the table, the scores across games, the figures, a legend and notes;
 - `results.csv`: one row per game and configuration, numbers in their own columns;
 - `summary.csv`: median and mean human-normalised score across games (2 games or more);
-- `curves-GAME.png` and `.svg`: periodic-evaluation score against training steps.
+- `curves-GAME.png` and `.svg`: periodic-evaluation score against training steps;
+- aggregates across games (2 games or more with human-normalised scores):
+  `aggregates.csv`, `aggregates.png`/`.svg` (IQM, median, mean, optimality gap with
+  confidence intervals), `performance-profiles.png`/`.svg`, and with two configurations
+  or more `probability-of-improvement.csv`.
 """
 
 from __future__ import annotations
@@ -28,15 +32,26 @@ from dqnlab.envs import is_atari
 from dqnlab.errors import DqnlabError
 from dqnlab.run import rundir
 from dqnlab.run.evaluate import final_evaluation, final_evaluation_record
+from dqnlab.tools.report.aggregate import (
+    Aggregates,
+    AggregateSettings,
+    aggregate_scores,
+    interval_figure,
+    profile_figure,
+)
 from dqnlab.tools.report.curves import curve_figure, learning_curves
 from dqnlab.tools.report.reference import REFERENCES, load_reference_curves, on_track_rows
 from dqnlab.tools.report.runs import Group, RunResults, find_runs, group_runs, load_run
 from dqnlab.tools.report.scores import load_reference_scores, result_rows, summary_rows
 from dqnlab.tools.report.tables import (
+    AGGREGATE_COLUMNS,
+    IMPROVEMENT_COLUMNS,
     RESULT_COLUMNS,
     SUMMARY_COLUMNS,
     Report,
     RunInspection,
+    _aggregate_records,
+    _improvement_records,
     _result_record,
     _summary_record,
     format_markdown,
@@ -44,9 +59,18 @@ from dqnlab.tools.report.tables import (
 
 if TYPE_CHECKING:
     import torch
+    from matplotlib.figure import Figure
 
 RESULTS_MD, RESULTS_CSV, SUMMARY_CSV = "results.md", "results.csv", "summary.csv"
 Q_VALUES_DIR = "q-values"
+FIGURES = (".png", ".svg")  # each figure in both
+AGGREGATES_CSV, IMPROVEMENT_CSV = "aggregates.csv", "probability-of-improvement.csv"
+AGGREGATES_FIGURE, PROFILES_FIGURE = "aggregates", "performance-profiles"  # .png and .svg
+AGGREGATE_FILES = (
+    AGGREGATES_CSV,
+    IMPROVEMENT_CSV,
+    *(f"{stem}{suffix}" for stem in (AGGREGATES_FIGURE, PROFILES_FIGURE) for suffix in FIGURES),
+)
 
 
 def best_network_evaluator(
@@ -78,12 +102,14 @@ def build_report(
     evaluate_missing: Callable[[Path], dict[str, Any]] | None = None,
     echo: Callable[[str], object] | None = None,
     reference: str = "dopamine",
+    aggregate: AggregateSettings | None = None,
 ) -> Report:
     """Read the runs (RUN_DIR or sweep directories), play the missing final evaluations
     with `evaluate_missing` (None: leave those runs out of the table) and compute the
-    table and the curves; writes nothing but what `evaluate_missing` saves. `reference`:
-    "dopamine" draws its published curves behind the Atari games' curves and sets the
-    runs beside them in the on-track table; "none" leaves both out."""
+    table, the curves and the aggregates across games (`aggregate`: the baseline and the
+    bootstrap, None: the defaults); writes nothing but what `evaluate_missing` saves.
+    `reference`: "dopamine" draws its published curves behind the Atari games' curves and
+    sets the runs beside them in the on-track table; "none" leaves both out."""
     if reference not in REFERENCES:
         raise DqnlabError(f"--reference {reference!r} is not one of: {', '.join(REFERENCES)}")
     runs = [load_run(path) for path in find_runs(run_dirs)]
@@ -97,7 +123,12 @@ def build_report(
     evaluated = _complete_final_evaluations(runs, evaluate_missing, echo, notes)
     groups = group_runs(runs)
     notes.extend(_group_notes(groups))
-    rows = result_rows(groups, load_reference_scores())
+    references = load_reference_scores()
+    rows = result_rows(groups, references)
+    aggregates, aggregate_notes = aggregate_scores(
+        groups, references, aggregate or AggregateSettings()
+    )
+    notes.extend(aggregate_notes)
     curves = learning_curves(groups)
     for group in groups:
         for run in group.runs:
@@ -118,21 +149,23 @@ def build_report(
             notes.append(f"{game}: no run has a periodic evaluation yet: no figure")
     on_track = []
     if reference == "dopamine":
-        references = load_reference_curves(games)
+        reference_curves = load_reference_curves(games)
         for curve in curves:
-            curve.reference = references.get(curve.game)
+            curve.reference = reference_curves.get(curve.game)
         on_track = on_track_rows(
-            [(run, group.label) for group in groups for run in group.runs], references
+            [(run, group.label) for group in groups for run in group.runs], reference_curves
         )
-        missing = [game for game in games if is_atari(game) and game not in references]
+        missing = [game for game in games if is_atari(game) and game not in reference_curves]
         if missing:
             notes.append(
                 f"Dopamine's curves do not cover {', '.join(missing)}: no reference curve "
                 "or verdict for them"
             )
-    report = Report(runs, groups, rows, summary_rows(rows), curves, notes, evaluated, [])
-    report.on_track = on_track
-    return report
+    summary = summary_rows(rows)
+    return Report(
+        runs, groups, rows, summary, curves, notes, evaluated, [],
+        aggregates=aggregates, on_track=on_track,
+    )  # fmt: skip
 
 
 def write_report(
@@ -144,29 +177,33 @@ def write_report(
     inspect_frames: int = 0,
     device: torch.device | None = None,
     reference: str = "dopamine",
+    aggregate: AggregateSettings | None = None,
 ) -> Report:
-    """`build_report`, then write results.md, results.csv, summary.csv (2 games or more)
-    and curves-GAME.png/.svg into `out_dir`. `evaluate_missing`: see
+    """`build_report`, then write results.md, results.csv, summary.csv (2 games or more),
+    curves-GAME.png/.svg and the aggregates' files into `out_dir`. `evaluate_missing`: see
     `best_network_evaluator`; `echo` is told of each evaluation before it starts. With
     `inspect_frames` > 0, also the Q-values of each run's best and worst networks on that
     many frames (`inspect_report_runs`), into `out_dir`/q-values/RUN/. What an earlier
     report left in `out_dir` and this one does not write again (curves of other games,
-    a summary.csv, Q-values of other runs) is removed: every file is of this report."""
+    a summary.csv, aggregates, Q-values of other runs) is removed: every file is of this
+    report."""
     report = build_report(
-        run_dirs, evaluate_missing=evaluate_missing, echo=echo, reference=reference
+        run_dirs,
+        evaluate_missing=evaluate_missing,
+        echo=echo,
+        reference=reference,
+        aggregate=aggregate,
     )
     out_dir.mkdir(parents=True, exist_ok=True)
     earlier = [*out_dir.glob("curves-*.png"), *out_dir.glob("curves-*.svg"), out_dir / SUMMARY_CSV]
+    earlier += [out_dir / name for name in AGGREGATE_FILES]
     earlier_inspections = [p for p in (out_dir / Q_VALUES_DIR).glob("*") if p.is_dir()]
     taken: set[str] = set()
     for curve in report.curves:
-        figure = curve_figure(curve)
-        stem = _file_stem(curve.game, taken)
-        for suffix, options in ((".png", {"dpi": 150}), (".svg", {"metadata": {"Date": None}})):
-            path = out_dir / f"{stem}{suffix}"
-            figure.savefig(path, **options)
-            curve.files.append(path)
+        curve.files += _save_figure(curve_figure(curve), out_dir / _file_stem(curve.game, taken))
         report.files.extend(curve.files)
+    if report.aggregates is not None:
+        report.files.extend(_write_aggregates(report.aggregates, out_dir))
     path = out_dir / RESULTS_CSV
     _write_csv(path, [_result_record(row) for row in report.rows], RESULT_COLUMNS)
     report.files.append(path)
@@ -306,6 +343,36 @@ def _group_notes(groups: Sequence[Group]) -> list[str]:
                 "directory; each run counts as a seed"
             )
     return notes
+
+
+def _save_figure(figure: Figure, stem: Path) -> list[Path]:
+    """`figure` as STEM.png and STEM.svg (without a date, so that a report written again
+    from the same runs gives the same file)."""
+    paths = []
+    options: dict[str, dict[str, Any]] = {
+        ".png": {"dpi": 150},
+        ".svg": {"metadata": {"Date": None}},
+    }
+    for suffix in FIGURES:
+        path = stem.with_name(stem.name + suffix)
+        figure.savefig(path, **options[suffix])
+        paths.append(path)
+    return paths
+
+
+def _write_aggregates(aggregates: Aggregates, out_dir: Path) -> list[Path]:
+    """The aggregates' figures and CSV files (the probabilities of improvement with two
+    configurations or more), recorded in `aggregates.files`."""
+    aggregates.files += _save_figure(interval_figure(aggregates), out_dir / AGGREGATES_FIGURE)
+    aggregates.files += _save_figure(profile_figure(aggregates), out_dir / PROFILES_FIGURE)
+    path = out_dir / AGGREGATES_CSV
+    _write_csv(path, _aggregate_records(aggregates), AGGREGATE_COLUMNS)
+    aggregates.files.append(path)
+    if aggregates.improvements:
+        path = out_dir / IMPROVEMENT_CSV
+        _write_csv(path, _improvement_records(aggregates), IMPROVEMENT_COLUMNS)
+        aggregates.files.append(path)
+    return aggregates.files
 
 
 def _write_csv(path: Path, records: list[dict[str, Any]], columns: Sequence[str]) -> None:
