@@ -135,3 +135,22 @@ def test_toml_values_read_back_and_labels_leave_strings_bare() -> None:
         assert read == (list(value) if isinstance(value, tuple) else value)
     assert setting_text("deepmind_rmsprop") == "deepmind_rmsprop"
     assert setting_text(False) == "false" and setting_text((64, 64)) == "[64, 64]"
+
+
+def test_where_a_run_logs_is_checked_and_outside_its_fingerprint() -> None:
+    plain = resolve_config("nature", env="pong")
+    assert (plain.logger, plain.wandb_project) == ("tensorboard", "dqnlab")
+    overrides = parse_overrides(["logger=tensorboard+wandb", "wandb_project=atari-dqn"])
+    to_wandb = resolve_config("nature", overrides, env="pong")
+    assert config_fingerprint(to_wandb) == config_fingerprint(plain)  # a resume may turn it on
+    assert differing_settings(plain, to_wandb) == []
+    bad = {
+        "logger=wandb": "logger = 'wandb' is not one of: tensorboard, tensorboard+wandb",
+        "wandb_project=team/dqn": "wandb_project = 'team/dqn' must be 1 to 128 characters, none "
+        "of / \\ # ? % :",
+        "wandb_project=": "wandb_project = '' must be 1 to 128 characters",
+    }
+    for pair, message in bad.items():
+        with pytest.raises(ConfigError) as error:
+            resolve_config("nature", parse_overrides([pair]), env="pong")
+        assert message in str(error.value)

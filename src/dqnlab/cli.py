@@ -157,10 +157,13 @@ def evaluate(
     more games of the same network. With --video the games
     are played one after another on one emulator and filmed from the raw screens (every
     emulator frame, 60 frames/s); without it they are spread over every core (other
-    games, the same protocol)."""
+    games, the same protocol). A run trained with logger = tensorboard+wandb also gets
+    the saved final evaluation and the videos in its W&B run's summary."""
     from dqnlab.run.evaluate import final_evaluation, final_evaluation_record
     from dqnlab.run.rundir import load_final_evaluation, record_final_evaluation
+    from dqnlab.run.wandb_log import add_to_summary, final_evaluation_values, video_media
 
+    videos: list[Path] = []
     if video is None:
         result, network = final_evaluation(
             run_dir, checkpoint, episodes, seed, resolve_device(device)
@@ -171,7 +174,8 @@ def evaluate(
         recording, network = filmed_final_evaluation(
             run_dir, checkpoint, episodes, seed, resolve_device(device), video, video_format
         )
-        for file in recording.paths:
+        videos = recording.paths
+        for file in videos:
             typer.echo(f"dqnlab: wrote {file}")
         if recording.note:
             typer.echo(f"dqnlab: {recording.video_format.upper()}: {recording.note}")
@@ -182,6 +186,7 @@ def evaluate(
         f"({network.path}, {result.frames} frames at {result.frames_per_second:.0f} frames/s)"
     )
     record = final_evaluation_record(result, config, network.path, network.step, seed)
+    written = False
     if checkpoint == "best":
         path, written = record_final_evaluation(run_dir, record)
         if written:
@@ -191,6 +196,10 @@ def evaluate(
             typer.echo(
                 f"dqnlab: kept {path}: it holds {saved.get('episodes')} games of this network"
             )
+    if checkpoint in ("best", "last"):  # the run's own network: to its W&B run, if it has one
+        values = final_evaluation_values(record) if written else {}
+        if add_to_summary(run_dir, values, video_media(checkpoint, videos)):
+            typer.echo("dqnlab: sent to the run's W&B summary")
     if json_path:
         json_path.parent.mkdir(parents=True, exist_ok=True)
         json_path.write_text(json.dumps(record, indent=2) + "\n")

@@ -129,6 +129,13 @@ class Config:
     on_checkpoint_error: str = _setting(
         "stop", "stop, or continue training when a checkpoint cannot be written"
     )
+    # Logging (CSV files always; where else the same figures go).
+    logger: str = _setting(
+        "tensorboard",
+        "tensorboard, or tensorboard+wandb: also to Weights & Biases (needs dqnlab[wandb]; "
+        "entity, group, tags and offline mode through W&B's WANDB_* environment variables)",
+    )
+    wandb_project: str = _setting("dqnlab", "W&B project of the run (logger = tensorboard+wandb)")
 
     def __post_init__(self) -> None:
         _validate(self)
@@ -140,6 +147,7 @@ class Config:
 
 
 FIELD_NAMES = tuple(f.name for f in dataclasses.fields(Config))
+WANDB_PROJECT_FORBIDDEN = tuple("/\\#?%:")  # as wandb's Settings.validate_project
 # The accepted values of each setting that takes one of a few names; modules that
 # dispatch on a setting read its list here.
 CHOICES: dict[str, tuple[str, ...]] = {
@@ -153,6 +161,7 @@ CHOICES: dict[str, tuple[str, ...]] = {
     "eval_networks_kept": ("all", "best_and_worst"),
     "replay_storage": ("auto", "host", "device"),
     "replay_compression": ("none", "lz4"),
+    "logger": ("tensorboard", "tensorboard+wandb"),
 }
 
 
@@ -193,10 +202,18 @@ def _validate(config: Config) -> None:
         )
     if any(width <= 0 for width in config.mlp_hidden_sizes):
         raise ConfigError(f"mlp_hidden_sizes = {list(config.mlp_hidden_sizes)} must be positive")
+    # W&B would refuse such a project name, but only once the run has started.
+    project = config.wandb_project
+    if not 0 < len(project) <= 128 or any(c in project for c in WANDB_PROJECT_FORBIDDEN):
+        raise ConfigError(
+            f"wandb_project = {project!r} must be 1 to 128 characters, none of "
+            f"{' '.join(WANDB_PROJECT_FORBIDDEN)}"
+        )
 
 
 # Settings that do not shape the training state: a run may resume with them changed.
 RESUMABLE_CHANGES = (
+    "logger", "wandb_project",
     "total_steps", "compile_update", "checkpoint_period_minutes", "checkpoint_period_steps",
     "checkpoints_kept", "on_checkpoint_error", "eval_networks_kept", "replay_storage",
     "replay_compression", "heldout_transitions",

@@ -6,9 +6,14 @@ import csv
 import os
 import time
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from dqnlab.run import rundir
+
+if TYPE_CHECKING:
+    from torch.utils.tensorboard import SummaryWriter
+
+    from dqnlab.run.wandb_log import MirroredWriter, WandbLog
 
 EPISODE_FIELDS = ("step", "frames", "episode", "score", "steps", "epsilon", "wall_seconds")
 # Logged rows reach the file (the OS's page cache, not an fsync) at most this long after
@@ -21,15 +26,21 @@ EVALUATION_FIELDS = (
 
 
 class RunLogger:
-    """Appends rows to `episodes.csv` and `evaluations.csv` and scalars to TensorBoard.
+    """Appends rows to `episodes.csv` and `evaluations.csv` and scalars to TensorBoard,
+    and with `wandb_log` the same scalars to W&B.
 
     `resume_step`: the step of the checkpoint a run resumes from (0: none, start over).
     Rows and events logged after it (by the run that was killed) are dropped, since the
-    resumed run logs them again: no duplicates, no gaps.
+    resumed run logs them again: no duplicates, no gaps. W&B cannot drop steps:
+    `wandb_log` sends only those W&B does not hold yet (`wandb_log.WandbLog`).
     """
 
     def __init__(
-        self, run_dir: Path, tensorboard: bool = True, resume_step: int | None = None
+        self,
+        run_dir: Path,
+        tensorboard: bool = True,
+        resume_step: int | None = None,
+        wandb_log: WandbLog | None = None,
     ) -> None:
         self.run_dir = run_dir
         self._files = {}
@@ -51,7 +62,7 @@ class RunLogger:
                 handle.flush()
             self._files[name] = handle
             self._writers[name] = writer
-        self.tensorboard = None
+        self.tensorboard: SummaryWriter | MirroredWriter | None = None
         if tensorboard:
             from torch.utils.tensorboard import SummaryWriter
 
@@ -59,6 +70,9 @@ class RunLogger:
                 log_dir=str(rundir.tensorboard_dir(run_dir)),
                 purge_step=None if resume_step is None else resume_step + 1,
             )
+        self.wandb_log = wandb_log
+        if wandb_log is not None:  # every scalar below also goes to W&B, at the same step
+            self.tensorboard = wandb_log.mirroring(self.tensorboard)
         self._pushed_at = time.monotonic()
 
     def episode(self, row: dict[str, Any]) -> None:
@@ -101,6 +115,8 @@ class RunLogger:
             os.fsync(handle.fileno())
         if self.tensorboard:
             self.tensorboard.flush()
+        if self.wandb_log is not None:
+            self.wandb_log.commit()
 
     def close(self) -> None:
         self.flush()
@@ -108,6 +124,8 @@ class RunLogger:
             handle.close()
         if self.tensorboard:
             self.tensorboard.close()
+        if self.wandb_log is not None:
+            self.wandb_log.close()
 
 
 def _truncate_after(path: Path, step: int) -> None:

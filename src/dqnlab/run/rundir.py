@@ -12,6 +12,9 @@ kept or replaced. Everything else asks it.
             evals/step-NNNNNNNNN.pt       every evaluated network (eval_networks_kept = "all")
             step-NNNNNNNNN/, replay/      training checkpoints (`checkpoints.CheckpointStore`)
         inspect/                 what `dqnlab inspect` writes by default
+        wandb/                   W&B's own files: a directory per session, offline runs
+                                 to `wandb sync` (logger = "tensorboard+wandb")
+        wandb_run.json           the W&B run this run logs to, reopened on resume
 
 A *network file* holds one network and what is needed to play it: the configuration it
 was trained with, its input shape, dtype and action names, and the step (and periodic
@@ -59,6 +62,8 @@ CHECKPOINTS_DIR = "checkpoints"
 NETWORK_NAMES = ("best", "worst", "last")
 EVAL_NETWORKS_DIR = "evals"  # under checkpoints/: one network per periodic evaluation
 INSPECT_DIR = "inspect"
+WANDB_DIR = "wandb"  # wandb.init(dir=RUN_DIR) names it
+WANDB_RUN_FILE = "wandb_run.json"
 NETWORK_FORMAT = "dqnlab-checkpoint-1"  # the format tag of a network file
 _EVAL_NETWORK_FILE = re.compile(r"step-(\d+)\.pt")
 
@@ -88,6 +93,14 @@ def checkpoints_dir(run_dir: Path) -> Path:
 
 def inspect_dir(run_dir: Path) -> Path:
     return run_dir / INSPECT_DIR
+
+
+def wandb_dir(run_dir: Path) -> Path:
+    return run_dir / WANDB_DIR
+
+
+def wandb_run_path(run_dir: Path) -> Path:
+    return run_dir / WANDB_RUN_FILE
 
 
 def network_path(run_dir: Path, name: str) -> Path:

@@ -31,6 +31,7 @@ from dqnlab.run.checkpoints import CheckpointStore, written_slots
 from dqnlab.run.logs import RunLogger
 from dqnlab.run.play import EvaluationResult
 from dqnlab.run.state import TrainingState, check_disk
+from dqnlab.run.wandb_log import WandbLog, import_wandb, uses_wandb
 
 PROGRESS_PERIOD_STEPS = 1000  # NaN checks, TensorBoard scalars and the progress bar
 RECENT_GAMES = 20  # games in the progress bar's mean score
@@ -113,6 +114,8 @@ class TrainingLoop:
         tensorboard: bool,
         resume: bool,
     ) -> None:
+        if uses_wandb(config):
+            import_wandb()  # without the extra, one line now, before anything is built
         self.config = config
         self.run_dir = run_dir
         self.state = TrainingState(config, device)
@@ -124,8 +127,12 @@ class TrainingLoop:
         else:
             rundir.write_run_config(run_dir, config)
         check_disk(run_dir, self.state.replay)
+        resume_step = self.state.steps if resume else None
         self.logger = RunLogger(
-            run_dir, tensorboard=tensorboard, resume_step=self.state.steps if resume else None
+            run_dir,
+            tensorboard=tensorboard,
+            resume_step=resume_step,
+            wandb_log=WandbLog(run_dir, config, resume_step) if uses_wandb(config) else None,
         )
         replay, env = self.state.replay, self.state.env
         self.saved_position, self.saved_writes = replay.position, replay.writes

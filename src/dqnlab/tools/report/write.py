@@ -32,6 +32,7 @@ from dqnlab.envs import is_atari
 from dqnlab.errors import DqnlabError
 from dqnlab.run import rundir
 from dqnlab.run.evaluate import final_evaluation, final_evaluation_record
+from dqnlab.run.wandb_log import add_to_summary, final_evaluation_values
 from dqnlab.tools.report.aggregate import (
     Aggregates,
     AggregateSettings,
@@ -224,7 +225,26 @@ def write_report(
     for old_dir in earlier_inspections:
         if old_dir not in written:
             shutil.rmtree(old_dir)
+    send_to_wandb(report, echo)
     return report
+
+
+def send_to_wandb(report: Report, echo: Callable[[str], object] | None = None) -> None:
+    """Each run of the report that logs to W&B gets in its W&B run's summary its final
+    evaluation and the report's figures of it: its game's learning curves and, where
+    inspected, its Q-values overview (nothing for the others)."""
+    for run in report.runs:
+        media: dict[str, Path] = {}
+        for curve in report.curves:
+            pictures = [path for path in curve.files if path.suffix == ".png"]
+            if curve.game == run.config.env and pictures:
+                media["report/learning_curves"] = pictures[0]
+        for item in report.inspections:
+            if item.run_dir == run.run_dir and item.inspection.overview_path is not None:
+                media["report/q_values"] = item.inspection.overview_path
+        values = final_evaluation_values(run.final_evaluation) if run.final_evaluation else {}
+        if add_to_summary(run.run_dir, values, media) and echo is not None:
+            echo(f"dqnlab: {run.run_dir}: final evaluation and figures sent to its W&B run")
 
 
 def inspect_report_runs(
