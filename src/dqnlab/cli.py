@@ -112,8 +112,8 @@ def _run(config, run_dir: Path, device, progress: bool, resume: bool) -> None:  
         f"dqnlab: {result.steps} steps, {result.frames} frames"
         + (
             f" ({result.session_frames} since the resume)"
-            if result.session_frames != result.frames
-            else ""
+            if resume and result.session_frames != result.frames
+            else ""  # a fresh run's count starts after its first reset's no-op frames
         )
         + f" in {result.seconds:.0f} s "
         f"({result.frames_per_second:.0f} frames/s overall, {result.learning_frames_per_second:.0f} "
