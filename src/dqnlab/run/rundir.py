@@ -12,6 +12,14 @@ kept or replaced. Everything else asks it.
             evals/step-NNNNNNNNN.pt       every evaluated network (eval_networks_kept = "all")
             step-NNNNNNNNN/, replay/      training checkpoints (`checkpoints.CheckpointStore`)
         inspect/                 what `dqnlab inspect` writes by default
+        lease.json               who trains the run now (`lease.RunLease`)
+        attempts.jsonl           one line per start and end of a sweep's attempt
+
+    SWEEP/                       a sweep directory (`dqnlab sweep`, `dqnlab ablate`)
+        sweep.json               the grid and the marker every node checks it sees
+        logs/NAME.log, NAME.toml each run's output and its whole configuration
+        RUN/ ...                 one run directory per run
+        report/                  the sweep's report
 
 A *network file* holds one network and what is needed to play it: the configuration it
 was trained with, its input shape, dtype and action names, and the step (and periodic
@@ -59,6 +67,11 @@ CHECKPOINTS_DIR = "checkpoints"
 NETWORK_NAMES = ("best", "worst", "last")
 EVAL_NETWORKS_DIR = "evals"  # under checkpoints/: one network per periodic evaluation
 INSPECT_DIR = "inspect"
+LEASE_FILE = "lease.json"
+ATTEMPTS_FILE = "attempts.jsonl"
+SESSION_FILES = (LEASE_FILE, ATTEMPTS_FILE)  # who trains it: a directory of only these is new
+SWEEP_FILE = "sweep.json"
+SWEEP_LOGS_DIR = "logs"
 NETWORK_FORMAT = "dqnlab-checkpoint-1"  # the format tag of a network file
 _EVAL_NETWORK_FILE = re.compile(r"step-(\d+)\.pt")
 
@@ -88,6 +101,22 @@ def checkpoints_dir(run_dir: Path) -> Path:
 
 def inspect_dir(run_dir: Path) -> Path:
     return run_dir / INSPECT_DIR
+
+
+def lease_path(run_dir: Path) -> Path:
+    return run_dir / LEASE_FILE
+
+
+def attempts_path(run_dir: Path) -> Path:
+    return run_dir / ATTEMPTS_FILE
+
+
+def sweep_file_path(sweep_dir: Path) -> Path:
+    return sweep_dir / SWEEP_FILE
+
+
+def sweep_logs_dir(sweep_dir: Path) -> Path:
+    return sweep_dir / SWEEP_LOGS_DIR
 
 
 def network_path(run_dir: Path, name: str) -> Path:
@@ -152,7 +181,7 @@ def prepare_run_dir(run_dir: Path, force: bool, config: Config | None = None) ->
     """
     if run_dir.exists() and not run_dir.is_dir():
         raise DqnlabError(f"--run-dir {run_dir} exists and is not a directory")
-    if run_dir.exists() and any(run_dir.iterdir()):
+    if run_dir.exists() and any(path.name not in SESSION_FILES for path in run_dir.iterdir()):
         if force and is_run_dir(run_dir):
             shutil.rmtree(run_dir)
         elif force:
