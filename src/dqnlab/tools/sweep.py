@@ -553,7 +553,7 @@ def _follow(
             _finish(pending.pop(reference), reference, echo)
         statuses = []
         for run in sweep.runs:
-            status = run_states.run_status(run.run_dir, _planned(run))
+            status = run_states.run_status(run.run_dir, planned_record(run))
             if run.status in ("done", "ok", "failed", "stopped"):
                 status.state = {"ok": "done"}.get(run.status, run.status)
             elif status.state in ("done", "failed", "stopped"):
@@ -581,7 +581,8 @@ def _seconds_left(statuses: list[run_states.RunStatus]) -> float | None:
     return left / sum(rates)
 
 
-def _planned(run: PlannedRun) -> dict[str, Any]:
+def planned_record(run: PlannedRun) -> dict[str, Any]:
+    """The run as sweep.json and `status.run_status` know it."""
     return {"name": run.name, "env": run.config.env, "seed": run.config.seed,
             "settings": run.settings, "total_steps": run.config.total_steps}  # fmt: skip
 
