@@ -1,4 +1,4 @@
-"""The `dqnlab` command: train, evaluate, benchmark, ablate, report, inspect, list games and presets."""
+"""The `dqnlab` command: train, evaluate, benchmark, ablate, sweep, status, report, inspect, list games and presets."""
 
 from __future__ import annotations
 
@@ -366,21 +366,216 @@ def ablate(
         sweep_dir=sweep_dir,
     )
     check_sweep_dir(sweep)
-    resolve_device(device)  # a bad --device fails here, not in every run
+    torch_device = resolve_device(device)  # a bad --device fails here, not in every run
     if jobs is not None and jobs <= 0:
         raise DqnlabError(f"--jobs {jobs} must be positive")
     jobs = jobs or default_jobs(sweep)
     typer.echo(f"dqnlab: {len(sweep.runs)} runs into {sweep_dir}, {jobs} at a time")
-    run_sweep(sweep, jobs=jobs, device=device, echo=typer.echo)
+    with _ray_connection("local"):
+        _run_or_stop(lambda: run_sweep(sweep, jobs=jobs, device=str(torch_device), echo=typer.echo))
+    _report_sweep(sweep, episodes, device, report=True)
+
+
+def _report_sweep(sweep, episodes: int | None, device: str, report: bool) -> None:  # noqa: ANN001
+    """A sweep's end: its report (unless not asked for), then a failed run named."""
     finished = [run.run_dir for run in sweep.runs if run.status in ("ok", "done")]
-    if finished:
-        _report(finished, sweep_dir / "report", episodes, device)
+    if finished and report:
+        _report(finished, sweep.directory / "report", episodes, device)
     if sweep.failed:
         raise DqnlabError(
             f"{len(sweep.failed)} of {len(sweep.runs)} runs failed: "
             + ", ".join(run.name for run in sweep.failed)
             + "; run the same command again to retry them"
         )
+
+
+def _ray_connection(address: str):  # noqa: ANN202 - ray is imported only when needed
+    """Connected to Ray for the block; a local cluster started here ends with it."""
+    import contextlib
+
+    from dqnlab.tools.cluster import connect
+
+    @contextlib.contextmanager
+    def connected():  # noqa: ANN202
+        connection = connect(address)
+        try:
+            yield connection
+        finally:
+            connection.close()
+
+    return connected()
+
+
+def _run_or_stop(run) -> None:  # noqa: ANN001
+    """Run the sweep; Ctrl-C has stopped its runs after their checkpoints: say how to go on."""
+    try:
+        run()
+    except KeyboardInterrupt:
+        typer.echo(
+            "dqnlab: stopped; every run wrote a checkpoint. Run the same command again to "
+            "carry on (finished runs are skipped, the others resume)",
+            err=True,
+        )
+        sys.exit(130)
+
+
+@app.command()
+def sweep(
+    env: Annotated[
+        str | None, typer.Option(help="Environments, comma-separated: pong,breakout or CartPole-v1")
+    ] = None,
+    games: Annotated[
+        str | None,
+        typer.Option(
+            help="A game set instead of --env: nature49, atari57, or a file of games (one a line)"
+        ),
+    ] = None,
+    preset: Annotated[
+        str | None, typer.Option(help="Base preset (nature for Atari, classic otherwise)")
+    ] = None,
+    seeds: Annotated[int, typer.Option(help="Seeds per game and setting: SEED, SEED+1, ...")] = 1,
+    seed: Annotated[int, typer.Option(help="The first seed")] = 0,
+    vary: Annotated[
+        list[str] | None,
+        typer.Option(
+            help="KEY=V1,V2 (values as in --set), or linked settings KEY1+KEY2=A1+A2,B1+B2; repeat for a grid"
+        ),
+    ] = None,
+    set_: Annotated[
+        list[str] | None,
+        typer.Option("--set", help="A setting shared by every run: KEY=VALUE (repeatable)"),
+    ] = None,
+    steps: Annotated[
+        int | None, typer.Option(help="Training budget of each run in agent steps")
+    ] = None,
+    sweep_dir: Annotated[
+        Path | None, typer.Option(help="Where the runs go (default sweeps/GAMES-KEYS)")
+    ] = None,
+    address: Annotated[
+        str, typer.Option(help="local (a Ray on this machine), auto, HOST:PORT or ray://HOST:PORT")
+    ] = "local",
+    cpus_per_run: Annotated[
+        float, typer.Option(help="CPUs of each run, also its PyTorch threads")
+    ] = 2.0,
+    gpus_per_run: Annotated[
+        float, typer.Option(help="GPUs of each run; 0.25 puts four runs on a GPU")
+    ] = 0.0,
+    memory_per_run: Annotated[
+        float | None,
+        typer.Option(
+            help="Host memory of each run in GB (default: its replay plus the process's measured overhead)"
+        ),
+    ] = None,
+    max_retries: Annotated[
+        int, typer.Option(help="Restarts of a run whose process or node died (it resumes)")
+    ] = 3,
+    report: Annotated[bool, typer.Option(help="Report into SWEEP/report at the end")] = True,
+    episodes: Annotated[
+        int | None, typer.Option(help="Games of a missing final evaluation in the report")
+    ] = None,
+) -> None:
+    """Train a grid of games × --vary settings × seeds on Ray (this machine or a cluster),
+    then report them together.
+
+    * `dqnlab sweep --games nature49 --seeds 5 --gpus-per-run 0.25 --address auto`
+    * `dqnlab sweep --env pong,breakout --vary learning_rate=0.00025,0.0001`
+
+    A run whose process or node dies is retried on any node and resumes from its newest
+    checkpoint. Running the same command again skips finished runs and resumes the others;
+    Ctrl-C stops every run after a checkpoint. `dqnlab status SWEEP_DIR` shows where it stands."""
+    sweep_plan, resources, device = _plan_sweep_command(
+        env, games, preset, seeds, seed, vary or [], set_ or [], steps, sweep_dir,
+        cpus_per_run, gpus_per_run, memory_per_run, max_retries,
+    )  # fmt: skip
+    from dqnlab.tools.cluster import node_resources
+    from dqnlab.tools.sweep import check_resources, run_sweep_on_ray
+
+    with _ray_connection(address):
+        check_resources(resources, node_resources())
+        typer.echo(
+            f"dqnlab: {len(sweep_plan.runs)} runs into {sweep_plan.directory}; each asks for "
+            f"{resources.cpus:g} CPUs, {resources.gpus:g} GPUs, "
+            f"{resources.memory_bytes / 1e9:.1f} GB"
+        )
+        _run_or_stop(
+            lambda: run_sweep_on_ray(
+                sweep_plan, resources, device=device, max_retries=max_retries, echo=typer.echo
+            )
+        )
+    _report_sweep(sweep_plan, episodes, "cpu", report)
+
+
+def _plan_sweep_command(
+    env: str | None,
+    games: str | None,
+    preset: str | None,
+    seeds: int,
+    seed: int,
+    vary: list[str],
+    set_: list[str],
+    steps: int | None,
+    sweep_dir: Path | None,
+    cpus_per_run: float,
+    gpus_per_run: float,
+    memory_per_run: float | None,
+    max_retries: int,
+):  # noqa: ANN202 - the sweep, its resources and the runs' device
+    """Every input of `dqnlab sweep` checked (one line and exit 2 on the first bad one)
+    before Ray is started or any run touched."""
+    from dqnlab.config import parse_overrides
+    from dqnlab.envs import check_env_name
+    from dqnlab.run.rundir import default_sweep_dir
+    from dqnlab.tools.sweep import (
+        check_sweep_dir,
+        game_set,
+        parse_variation,
+        plan_grid,
+        sweep_resources,
+    )
+
+    if (env is None) == (games is None):
+        raise DqnlabError(
+            "dqnlab sweep needs one of --env ENV[,ENV...] or --games nature49|atari57|FILE"
+        )
+    if max_retries < 0:
+        raise DqnlabError(f"--max-retries {max_retries} must be 0 or more")
+    envs = game_set(games) if games else [name.strip() for name in (env or "").split(",")]
+    envs = [name for name in envs if name]
+    for name in envs:
+        check_env_name(name)
+    variations = [parse_variation(text) for text in vary]
+    keys = [key for variation in variations for key in variation.keys]
+    label = Path(games).stem if games else "+".join(envs)
+    sweep_dir = sweep_dir or default_sweep_dir(label, keys or [f"{seeds}seeds"])
+    sweep_plan = plan_grid(
+        envs, variations, preset=preset, overrides=parse_overrides(set_), seeds=seeds,
+        first_seed=seed, steps=steps, sweep_dir=sweep_dir,
+    )  # fmt: skip
+    check_sweep_dir(sweep_plan)
+    memory = int(memory_per_run * 1e9) if memory_per_run is not None else None
+    if memory is not None and memory <= 0:
+        raise DqnlabError(f"--memory-per-run {memory_per_run} must be positive")
+    resources = sweep_resources(sweep_plan, cpus_per_run, gpus_per_run, memory)
+    return sweep_plan, resources, ("cuda" if gpus_per_run > 0 else "cpu")
+
+
+@app.command()
+def status(
+    path: Annotated[Path, typer.Argument(help="A sweep directory or a run directory")],
+    json_path: Annotated[
+        Path | None, typer.Option("--json", help="Also write the runs' states as JSON to this file")
+    ] = None,
+) -> None:
+    """Where a sweep's runs (or one run) stand, from the run directories alone: no Ray
+    needed, from any machine that sees the storage."""
+    from dqnlab.tools.status import collect_status, format_status_table, status_json
+
+    statuses = collect_status(path)
+    for line in format_status_table(statuses):
+        typer.echo(line)
+    if json_path:
+        json_path.parent.mkdir(parents=True, exist_ok=True)
+        json_path.write_text(json.dumps(status_json(statuses), indent=2) + "\n")
 
 
 @app.command()
@@ -600,11 +795,12 @@ _python_format_warning = warnings.formatwarning
 
 
 def main() -> None:
-    """Entry point: a DqnlabError ends the command with one line and exit status 2."""
+    """Entry point: a DqnlabError ends the command with one line and exit status 2 (75
+    for a run directory another process trains: `lease.LeaseHeld`)."""
     warnings.formatwarning = _format_warning
     _keep_freed_memory()
     try:
         app()
     except DqnlabError as error:
         print(f"dqnlab: error: {error}", file=sys.stderr)
-        sys.exit(2)
+        sys.exit(getattr(error, "exit_status", 2))  # 2, or a status a caller acts on

@@ -10,6 +10,7 @@ from dqnlab.errors import ConfigError, DqnlabError
 from dqnlab.run import rundir
 from dqnlab.run.rundir import load_run_config
 from dqnlab.tools.ablate import Variation, check_sweep_dir, parse_variation, plan_sweep, run_sweep
+from tests.tools.ray_helpers import loopback_ray, non_loopback_sockets
 
 TINY = {
     "replay_start_steps": 100,
@@ -17,6 +18,14 @@ TINY = {
     "eval_steps": 100,
     "final_eval_episodes": 2,
 }
+
+
+@pytest.fixture(scope="module")
+def ray_cluster():  # noqa: ANN201
+    """One Ray cluster for the module (start-up takes 10-20 s): a head that only schedules
+    and a node of 2 CPUs, all on 127.0.0.1; the sweeps below run on it."""
+    with loopback_ray(0, [{"num_cpus": 2}]) as cluster:
+        yield cluster
 
 
 def test_parse_single_and_linked_variations() -> None:
@@ -78,7 +87,7 @@ def test_plan_refuses_bad_grids_before_anything_runs(tmp_path: Path) -> None:
     assert not (tmp_path / "s").exists()
 
 
-def test_sweep_trains_each_run_then_skips_finished_ones(tmp_path: Path) -> None:
+def test_sweep_trains_each_run_then_skips_finished_ones(tmp_path: Path, ray_cluster) -> None:
     sweep_dir = tmp_path / "sweep"
     variation = parse_variation("life_loss_terminal=true,false")
     sweep = plan_sweep(
@@ -88,6 +97,7 @@ def test_sweep_trains_each_run_then_skips_finished_ones(tmp_path: Path) -> None:
     lines: list[str] = []
     run_sweep(sweep, jobs=2, device="cpu", echo=lines.append, poll_seconds=0.1)
     assert [run.status for run in sweep.runs] == ["ok", "ok"], lines
+    assert non_loopback_sockets() == []  # Ray and the runs talked on 127.0.0.1 only
     for run in sweep.runs:
         assert load_run_config(run.run_dir) == run.config
         assert rundir.load_network(run.run_dir / "checkpoints" / "last.pt")["step"] == 300
@@ -118,7 +128,7 @@ def test_sweep_trains_each_run_then_skips_finished_ones(tmp_path: Path) -> None:
         assert steps == ["step", "150", "300", "450"]  # continued, not restarted
 
 
-def test_a_failed_run_does_not_stop_the_others(tmp_path: Path) -> None:
+def test_a_failed_run_does_not_stop_the_others(tmp_path: Path, ray_cluster) -> None:
     sweep = plan_sweep(
         "CartPole-v1", [parse_variation("discount=0.9,0.99")], preset="classic",
         overrides=TINY, seeds=1, first_seed=0, steps=150, sweep_dir=tmp_path,
@@ -132,7 +142,7 @@ def test_a_failed_run_does_not_stop_the_others(tmp_path: Path) -> None:
     assert any("FAILED" in line and "already exists and is not empty" in line for line in lines)
 
 
-def test_a_sweep_dir_holding_other_runs_is_refused(tmp_path: Path) -> None:
+def test_a_sweep_dir_holding_other_runs_is_refused(tmp_path: Path, ray_cluster) -> None:
     def plan(values: str):  # noqa: ANN202
         return plan_sweep(
             "CartPole-v1", [parse_variation(f"discount={values}")], preset="classic",

@@ -15,6 +15,14 @@ kept or replaced. Everything else asks it.
         wandb/                   W&B's own files: a directory per session, offline runs
                                  to `wandb sync` (logger = "tensorboard+wandb")
         wandb_run.json           the W&B run this run logs to, reopened on resume
+        lease.json               who trains the run now (`lease.RunLease`)
+        attempts.jsonl           one line per start and end of a sweep's attempt
+
+    SWEEP/                       a sweep directory (`dqnlab sweep`, `dqnlab ablate`)
+        sweep.json               the grid and the marker every node checks it sees
+        logs/NAME.log, NAME.toml each run's output and its whole configuration
+        RUN/ ...                 one run directory per run
+        report/                  the sweep's report
 
 A *network file* holds one network and what is needed to play it: the configuration it
 was trained with, its input shape, dtype and action names, and the step (and periodic
@@ -64,6 +72,11 @@ EVAL_NETWORKS_DIR = "evals"  # under checkpoints/: one network per periodic eval
 INSPECT_DIR = "inspect"
 WANDB_DIR = "wandb"  # wandb.init(dir=RUN_DIR) names it
 WANDB_RUN_FILE = "wandb_run.json"
+LEASE_FILE = "lease.json"
+ATTEMPTS_FILE = "attempts.jsonl"
+SESSION_FILES = (LEASE_FILE, ATTEMPTS_FILE)  # who trains it: a directory of only these is new
+SWEEP_FILE = "sweep.json"
+SWEEP_LOGS_DIR = "logs"
 NETWORK_FORMAT = "dqnlab-checkpoint-1"  # the format tag of a network file
 _EVAL_NETWORK_FILE = re.compile(r"step-(\d+)\.pt")
 
@@ -101,6 +114,22 @@ def wandb_dir(run_dir: Path) -> Path:
 
 def wandb_run_path(run_dir: Path) -> Path:
     return run_dir / WANDB_RUN_FILE
+
+
+def lease_path(run_dir: Path) -> Path:
+    return run_dir / LEASE_FILE
+
+
+def attempts_path(run_dir: Path) -> Path:
+    return run_dir / ATTEMPTS_FILE
+
+
+def sweep_file_path(sweep_dir: Path) -> Path:
+    return sweep_dir / SWEEP_FILE
+
+
+def sweep_logs_dir(sweep_dir: Path) -> Path:
+    return sweep_dir / SWEEP_LOGS_DIR
 
 
 def network_path(run_dir: Path, name: str) -> Path:
@@ -165,7 +194,7 @@ def prepare_run_dir(run_dir: Path, force: bool, config: Config | None = None) ->
     """
     if run_dir.exists() and not run_dir.is_dir():
         raise DqnlabError(f"--run-dir {run_dir} exists and is not a directory")
-    if run_dir.exists() and any(run_dir.iterdir()):
+    if run_dir.exists() and any(path.name not in SESSION_FILES for path in run_dir.iterdir()):
         if force and is_run_dir(run_dir):
             shutil.rmtree(run_dir)
         elif force:

@@ -28,6 +28,7 @@ from dqnlab.config import Config, config_fingerprint
 from dqnlab.errors import DqnlabError
 from dqnlab.run import rundir
 from dqnlab.run.checkpoints import CheckpointStore, written_slots
+from dqnlab.run.lease import RunLease
 from dqnlab.run.logs import RunLogger
 from dqnlab.run.play import EvaluationResult
 from dqnlab.run.state import TrainingState, check_disk
@@ -97,8 +98,15 @@ def train(
     resume: bool = False,
 ) -> TrainResult:
     """Train into `run_dir`: from scratch, or with `resume` from its newest complete
-    checkpoint (the run directory created by the caller with `rundir.prepare_run_dir`)."""
-    return TrainingLoop(config, run_dir, device, progress, tensorboard, resume).run()
+    checkpoint (the run directory created by the caller with `rundir.prepare_run_dir`),
+    holding the run's lease (`lease.RunLease`) from start to end."""
+    lease = RunLease(run_dir)
+    lease.acquire()
+    lease.renew_in_background()
+    try:
+        return TrainingLoop(config, run_dir, device, progress, tensorboard, resume, lease).run()
+    finally:
+        lease.release()
 
 
 class TrainingLoop:
@@ -113,11 +121,13 @@ class TrainingLoop:
         progress: bool,
         tensorboard: bool,
         resume: bool,
+        lease: RunLease | None = None,
     ) -> None:
         if uses_wandb(config):
             import_wandb()  # without the extra, one line now, before anything is built
         self.config = config
         self.run_dir = run_dir
+        self.lease = lease
         self.state = TrainingState(config, device)
         self.store = CheckpointStore(run_dir, keep=config.checkpoints_kept)
         self.fingerprint = config_fingerprint(config)
@@ -264,7 +274,10 @@ class TrainingLoop:
     def _checkpoint(self, step: int) -> None:
         """A complete training checkpoint (only the replay chunks written since the last
         one), then last.pt. A failure stops the run, or with `on_checkpoint_error =
-        "continue"` is reported and training goes on."""
+        "continue"` is reported and training goes on. A run whose lease another process
+        took over stops here, before writing (LeaseLost)."""
+        if self.lease is not None:
+            self.lease.check()
         state, replay = self.state, self.state.replay
         state.check_finite()
         self.progress.recent_scores = list(self.recent_scores)

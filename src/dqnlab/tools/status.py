@@ -1,0 +1,240 @@
+"""Where a sweep's runs stand, read from their run directories alone (no Ray), so that
+`dqnlab status` works from any machine that sees the storage, and the sweep's live table
+shows the same.
+
+A run's state:
+    pending    nothing trained yet (no attempt started)
+    running    a process holds the run's lease (`lease.RunLease`)
+    retrying   an attempt ended without finishing (killed, node lost) and the run is
+               not held: Ray starts it again
+    stopped    stopped by a request (Ctrl-C) after a checkpoint: the same command carries on
+    done       trained to its budget
+    failed     an attempt failed for a reason retrying does not cure (its log says which)
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import math
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+from dqnlab.errors import DqnlabError
+from dqnlab.run import rundir
+from dqnlab.run.lease import LEASE_SECONDS, TAKEOVER_GRACE_SECONDS, lease_is_live
+
+STATES = ("pending", "running", "retrying", "stopped", "done", "failed")
+TAIL_BYTES = 8192  # enough of a CSV's end for its last rows
+# An attempt that started this recently and holds no lease yet is starting up, not lost.
+STARTING_SECONDS = LEASE_SECONDS + TAKEOVER_GRACE_SECONDS
+RATE_ROWS = 10  # frames/s over the last rows of episodes.csv
+
+
+@dataclass
+class RunStatus:
+    name: str
+    env: str
+    seed: int
+    settings: dict[str, Any]
+    state: str
+    step: int
+    total_steps: int
+    last_eval_mean: float | None = None
+    attempts: int = 0
+    frames_per_second: float | None = None  # of a running run
+    steps_per_second: float | None = None
+    node: str | None = None  # host of the latest attempt
+    started_at: float | None = None  # wall-clock start of the latest attempt
+    log_tail: str = field(default="", repr=False)
+
+    def json_fields(self) -> dict[str, Any]:
+        keys = ("name", "env", "seed", "settings", "state", "step", "total_steps")
+        record = {key: asdict(self)[key] for key in keys}
+        record["last_eval_mean"] = self.last_eval_mean
+        record["attempts"] = self.attempts
+        return record
+
+
+def read_attempts(run_dir: Path) -> list[dict[str, Any]]:
+    """The run's attempt events (one JSON object a line), oldest first."""
+    path = rundir.attempts_path(run_dir)
+    if not path.is_file():
+        return []
+    events = []
+    for line in path.read_text().splitlines():
+        try:
+            events.append(json.loads(line))
+        except json.JSONDecodeError:
+            continue  # a line cut by a crash
+    return events
+
+
+def record_attempt(run_dir: Path, event: dict[str, Any]) -> None:
+    """Append one event to the run's attempts file (a line written in one call)."""
+    with rundir.attempts_path(run_dir).open("a") as handle:
+        handle.write(json.dumps(event) + "\n")
+
+
+def _tail_rows(path: Path) -> list[dict[str, str]]:
+    if not path.is_file():
+        return []
+    with path.open("rb") as handle:
+        header = handle.readline().decode(errors="replace")
+        size = handle.seek(0, io.SEEK_END)
+        handle.seek(max(len(header), size - TAIL_BYTES))
+        tail = handle.read().decode(errors="replace")
+    lines = tail.splitlines()
+    if size - TAIL_BYTES > len(header):
+        lines = lines[1:]  # the first line read may be cut
+    rows = list(csv.DictReader([header, *lines]))
+    return [row for row in rows if None not in row.values()]
+
+
+def _number(text: str | None) -> float | None:
+    try:
+        value = float(text) if text not in (None, "") else None
+    except ValueError:
+        return None
+    return value if value is None or math.isfinite(value) else None
+
+
+def run_status(run_dir: Path, planned: dict[str, Any] | None = None) -> RunStatus:
+    """The state of one run, from its files; `planned` (a run of sweep.json) fills in a
+    run that has not started."""
+    planned = planned or {}
+    if rundir.is_run_dir(run_dir):
+        config = rundir.load_run_config(run_dir)
+        env, seed, total = config.env, config.seed, config.total_steps
+    else:
+        env, seed, total = planned["env"], planned["seed"], planned["total_steps"]
+    status = RunStatus(
+        planned.get("name", run_dir.name), env, seed, planned.get("settings", {}),
+        "pending", 0, total,
+    )  # fmt: skip
+    if not run_dir.is_dir():
+        return status
+    episodes = _tail_rows(rundir.episodes_path(run_dir))
+    evaluations = _tail_rows(rundir.evaluations_path(run_dir))
+    if episodes:
+        status.step = int(_number(episodes[-1].get("step")) or 0)
+    if evaluations:
+        status.last_eval_mean = _number(evaluations[-1].get("mean"))
+        status.step = max(status.step, int(_number(evaluations[-1].get("step")) or 0))
+    events = read_attempts(run_dir)
+    starts = [event for event in events if event.get("event") == "start"]
+    ends = [event for event in events if event.get("event") == "end"]
+    status.attempts = len(starts)
+    if starts:
+        status.node, status.started_at = starts[-1].get("host"), starts[-1].get("time")
+    last_end = None  # the end of the latest attempt, if it ended
+    if ends and (not starts or ends[-1]["attempt"] >= starts[-1]["attempt"]):
+        last_end = ends[-1]
+    if lease_is_live(run_dir):
+        status.state = "running"
+        status.frames_per_second = _rate(episodes, "frames")
+        status.steps_per_second = _rate(episodes, "step")
+    elif last_end is not None and last_end.get("outcome") in ("done", "failed", "stopped"):
+        status.state = last_end["outcome"]
+    elif _trained_to_budget(run_dir, total):
+        status.state = "done"
+    elif starts and last_end is None and time.time() - (status.started_at or 0) < STARTING_SECONDS:
+        status.state = "running"  # started, not holding its lease yet
+    elif starts or status.step > 0:
+        status.state = "retrying" if starts else "stopped"
+    if status.state == "done":
+        status.step = total
+    return status
+
+
+def _trained_to_budget(run_dir: Path, total_steps: int) -> bool:
+    step = rundir.network_step(run_dir, "last")
+    return step is not None and step >= total_steps
+
+
+def _rate(rows: list[dict[str, str]], column: str) -> float | None:
+    """Training `column` (frames, step) per second over the last rows of this session
+    (wall_seconds restarts at a resume, so a window that spans one is not used)."""
+    if len(rows) < 2:
+        return None
+    first, last = rows[max(0, len(rows) - RATE_ROWS)], rows[-1]
+    seconds = (_number(last.get("wall_seconds")) or 0) - (_number(first.get("wall_seconds")) or 0)
+    amount = (_number(last.get(column)) or 0) - (_number(first.get(column)) or 0)
+    return amount / seconds if seconds > 0 and amount > 0 else None
+
+
+def load_sweep_file(sweep_dir: Path) -> dict[str, Any] | None:
+    path = rundir.sweep_file_path(sweep_dir)
+    if not path.is_file():
+        return None
+    try:
+        return json.loads(path.read_text())
+    except json.JSONDecodeError as error:
+        raise DqnlabError(f"{path} is not valid JSON: {error}") from None
+
+
+def collect_status(path: Path) -> list[RunStatus]:
+    """Every run of a sweep directory (the grid of its sweep.json, else its run
+    directories), or the one run of a run directory."""
+    if rundir.is_run_dir(path):
+        return [run_status(path)]
+    if not path.is_dir():
+        raise DqnlabError(f"{path} is neither a run directory nor a sweep directory")
+    sweep = load_sweep_file(path)
+    if sweep is not None:
+        return [run_status(path / run["name"], run) for run in sweep["runs"]]
+    runs = sorted(child for child in path.iterdir() if rundir.is_run_dir(child))
+    if not runs:
+        raise DqnlabError(f"{path} holds no runs (no sweep.json, no run directories)")
+    return [run_status(child) for child in runs]
+
+
+def status_json(statuses: list[RunStatus]) -> dict[str, Any]:
+    return {
+        "runs": [status.json_fields() for status in statuses],
+        "done": sum(status.state == "done" for status in statuses),
+        "total": len(statuses),
+    }
+
+
+def format_status_table(statuses: list[RunStatus]) -> list[str]:
+    """One line per run: run, node, state, step of total, frames/s, last evaluation,
+    attempts; then the overall line."""
+    width = max([len(status.name) for status in statuses] + [3])
+    lines = [f"{'run':{width}s}  {'node':14s} {'state':9s} {'step':>21s} {'frames/s':>9s} "
+             f"{'last eval':>10s} {'attempts':>8s}"]  # fmt: skip
+    for status in statuses:
+        fps = f"{status.frames_per_second:.0f}" if status.frames_per_second else "-"
+        evaluation = f"{status.last_eval_mean:.2f}" if status.last_eval_mean is not None else "-"
+        steps = f"{status.step:,} / {status.total_steps:,}"
+        lines.append(
+            f"{status.name:{width}s}  {(status.node or '-')[:14]:14s} {status.state:9s} "
+            f"{steps:>21s} {fps:>9s} {evaluation:>10s} {status.attempts:>8d}"
+        )
+    lines.append(summary_line(statuses))
+    return lines
+
+
+def summary_line(statuses: list[RunStatus], seconds_left: float | None = None) -> str:
+    """The overall bar: runs by state, steps done of all, and the time left if known."""
+    counts = {state: sum(s.state == state for s in statuses) for state in STATES}
+    done_steps = sum(status.step for status in statuses)
+    all_steps = sum(status.total_steps for status in statuses) or 1
+    filled = int(20 * done_steps / all_steps)
+    parts = [f"{count} {state}" for state, count in counts.items() if count]
+    line = (f"[{'#' * filled}{'.' * (20 - filled)}] {100 * done_steps / all_steps:.0f}% of "
+            f"{all_steps:,} steps; " + ", ".join(parts))  # fmt: skip
+    if seconds_left is not None:
+        line += f"; about {_duration(seconds_left)} left"
+    return line
+
+
+def _duration(seconds: float) -> str:
+    if seconds < 120:
+        return f"{seconds:.0f} s"
+    if seconds < 7200:
+        return f"{seconds / 60:.0f} min"
+    return f"{seconds / 3600:.1f} h"

@@ -1,0 +1,182 @@
+"""Sweeps surviving faults on a Ray cluster of three nodes on 127.0.0.1 (slow: minutes).
+
+A head that only schedules and two worker nodes whose memory holds one run each: a node
+removed while a run trains on it, and the driver killed with SIGKILL and started again.
+Each run must end bit-identical to the same run trained alone (tests/run/test_resume.py's
+comparison), and no node may ever hold two runs at once.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from dqnlab.tools.status import read_attempts, run_status
+from dqnlab.tools.sweep import (
+    RunResources,
+    Sweep,
+    parse_variation,
+    plan_grid,
+    planned_record,
+    run_sweep_on_ray,
+)
+from tests.run.test_resume import assert_same_run
+from tests.tools.ray_helpers import loopback_ray, non_loopback_sockets, ray_processes
+
+pytestmark = pytest.mark.slow
+
+NODE_MEMORY = 3_000_000_000
+RUN_MEMORY = 2_000_000_000  # one run fits a node, two do not
+SETTINGS = {
+    "replay_start_steps": 200, "replay_capacity": 2000, "eval_period_steps": 500,
+    "eval_steps": 200, "checkpoint_period_steps": 100, "final_eval_episodes": 2,
+}  # fmt: skip
+STEPS = 1500
+
+
+def worker_node() -> dict[str, Any]:
+    return {"num_cpus": 2, "memory": NODE_MEMORY}
+
+
+@pytest.fixture(scope="module")
+def ray_cluster():  # noqa: ANN201
+    with loopback_ray(0, [worker_node(), worker_node()]) as cluster:
+        yield cluster
+
+
+@pytest.fixture(scope="module")
+def trained_alone(tmp_path_factory: pytest.TempPathFactory):  # noqa: ANN201
+    """The reference of a run: its config file trained by `dqnlab train` alone, once."""
+    cache: dict[str, Path] = {}
+
+    def reference(config_path: Path, env: str) -> Path:
+        key = config_path.read_text()
+        if key not in cache:
+            run_dir = tmp_path_factory.mktemp("alone") / "run"
+            subprocess.run(
+                [sys.executable, "-m", "dqnlab", "train", "--env", env, "--preset",
+                 str(config_path), "--run-dir", str(run_dir), "--device", "cpu", "--no-progress"],
+                check=True, capture_output=True, env={**os.environ, "OMP_NUM_THREADS": "1"},
+            )  # fmt: skip
+            cache[key] = run_dir
+        return cache[key]
+
+    return reference
+
+
+def plan(sweep_dir: Path, seeds: int) -> Sweep:
+    return plan_grid(
+        ["CartPole-v1"], [parse_variation("discount=0.9,0.99")], preset=None,
+        overrides=SETTINGS, seeds=seeds, first_seed=0, steps=STEPS, sweep_dir=sweep_dir,
+    )  # fmt: skip
+
+
+def attempts_by_node(sweep: Sweep) -> dict[str, list[tuple[float, float]]]:
+    """(start, end) of every attempt by node; an attempt cut by its node's loss ends at inf."""
+    intervals: dict[str, list[tuple[float, float]]] = {}
+    for run in sweep.runs:
+        events = read_attempts(run.run_dir)
+        ends = {e["attempt"]: e["time"] for e in events if e["event"] == "end"}
+        for start in (e for e in events if e["event"] == "start"):
+            interval = (start["time"], ends.get(start["attempt"], float("inf")))
+            intervals.setdefault(start["node_id"], []).append(interval)
+    return intervals
+
+
+def assert_one_run_per_node(sweep: Sweep) -> None:
+    for node, intervals in attempts_by_node(sweep).items():
+        intervals.sort()
+        for (_, end), (next_start, _) in zip(intervals, intervals[1:], strict=False):
+            assert next_start >= end, f"two runs at once on node {node}"
+
+
+def test_a_lost_node_s_run_is_retried_elsewhere_and_ends_identical(
+    tmp_path: Path,
+    ray_cluster,
+    trained_alone,  # noqa: ANN001
+) -> None:
+    sweep = plan(tmp_path / "sweep", seeds=2)
+    resources = RunResources(cpus=1, gpus=0, memory_bytes=RUN_MEMORY)
+    lines: list[str] = []
+    driver = threading.Thread(
+        target=run_sweep_on_ray, args=(sweep, resources),
+        kwargs={"device": "cpu", "echo": lines.append, "poll_seconds": 0.2},
+    )  # fmt: skip
+    driver.start()
+    try:
+        check_node_loss(sweep, driver, ray_cluster, lines, trained_alone)
+    finally:
+        driver.join(timeout=900)  # never leave a driver thread behind the cluster's shutdown
+
+
+def check_node_loss(
+    sweep: Sweep, driver: threading.Thread, ray_cluster, lines, trained_alone
+) -> None:  # noqa: ANN001
+    victim, sockets_checked = None, False
+    while victim is None and driver.is_alive():
+        for run in sweep.runs:
+            status = run_status(run.run_dir, planned_record(run))
+            if status.state == "running" and status.step >= 400:
+                victim = run
+                break
+        time.sleep(0.2)
+    assert victim is not None, lines
+    assert ray_processes() and non_loopback_sockets() == []  # while runs train
+    sockets_checked = True
+    node_id = [e for e in read_attempts(victim.run_dir) if e["event"] == "start"][-1]["node_id"]
+    lost = next(node for node in ray_cluster.worker_nodes if node.node_id == node_id)
+    lost_at = time.time()
+    ray_cluster.remove_node(lost, allow_graceful=False)
+    driver.join(timeout=900)
+    assert not driver.is_alive() and sockets_checked
+    assert [run.status for run in sweep.runs] == ["ok"] * 4, lines
+    starts = [e for e in read_attempts(victim.run_dir) if e["event"] == "start"]
+    assert len(starts) >= 2 and starts[-1]["node_id"] != node_id
+    print(f"node lost to its run training again: {starts[-1]['time'] - lost_at:.1f} s")
+    for run in sweep.runs:
+        assert_same_run(trained_alone(run.log.with_suffix(".toml"), "CartPole-v1"), run.run_dir)
+    assert_one_run_per_node(sweep)
+    ray_cluster.add_node(node_ip_address="127.0.0.1", **worker_node())  # for the next test
+
+
+def test_a_killed_driver_run_again_carries_on(tmp_path: Path, ray_cluster, trained_alone) -> None:  # noqa: ANN001
+    sweep_dir = tmp_path / "sweep"
+    command = [
+        sys.executable, "-m", "dqnlab", "sweep", "--env", "CartPole-v1",
+        "--vary", "discount=0.9,0.99", "--steps", str(STEPS), "--sweep-dir", str(sweep_dir),
+        "--address", ray_cluster.address, "--cpus-per-run", "1", "--memory-per-run", "2",
+        "--no-report", *[f"--set={key}={value}" for key, value in SETTINGS.items()],
+    ]  # fmt: skip
+    driver = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
+    sweep = plan(sweep_dir, seeds=1)
+    finished_first = None
+    while driver.poll() is None:
+        states = [run_status(run.run_dir, planned_record(run)) for run in sweep.runs]
+        done = [run for run, s in zip(sweep.runs, states, strict=True) if s.state == "done"]
+        busy = [s for s in states if s.state == "running" and s.step >= 300]
+        if done and busy or len(done) == 0 and sum(1 for s in busy) == 2:
+            finished_first = done[0] if done else None
+            break
+        time.sleep(0.2)
+    assert driver.poll() is None, driver.stdout.read() if driver.stdout else ""
+    kept = {}
+    if finished_first is not None:
+        kept = {path: path.stat().st_mtime_ns for path in finished_first.run_dir.rglob("*")}
+    driver.send_signal(signal.SIGKILL)
+    driver.wait()
+    again = subprocess.run(command, capture_output=True, text=True, timeout=900)
+    assert again.returncode == 0, again.stdout + again.stderr
+    if finished_first is not None:
+        assert "already finished, skipped" in again.stdout
+        assert {path: path.stat().st_mtime_ns for path in kept} == kept  # not trained again
+    for run in sweep.runs:
+        config_path = sweep_dir / "logs" / f"{run.name}.toml"
+        assert_same_run(trained_alone(config_path, "CartPole-v1"), run.run_dir)
