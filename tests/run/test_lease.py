@@ -56,3 +56,23 @@ def owner_pid(run_dir: Path) -> int:
     record = read_lease(run_dir)
     assert record is not None
     return record.pid
+
+
+def test_a_killed_owner_on_this_machine_is_taken_over_at_once(tmp_path: Path) -> None:
+    import subprocess
+    import sys
+
+    owner = RunLease(tmp_path)
+    owner.acquire()
+    record = json.loads((tmp_path / "lease.json").read_text())
+    ended = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"],
+                           capture_output=True, text=True, check=True)  # fmt: skip
+    (tmp_path / "lease.json").write_text(json.dumps(record | {"pid": int(ended.stdout)}))
+    RunLease(tmp_path).acquire()  # its process is gone (as after SIGKILL): no waiting
+    # The same on another machine, or in a lease that names no boot: only expiry frees it.
+    for other in ({"host": "elsewhere"}, {"boot_id": ""}):
+        (tmp_path / "lease.json").write_text(
+            json.dumps(record | {"pid": int(ended.stdout)} | other)
+        )
+        with pytest.raises(LeaseHeld):
+            RunLease(tmp_path).acquire()

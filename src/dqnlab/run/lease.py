@@ -8,7 +8,10 @@ from a thread, and re-reads it before writing each checkpoint: if the token ther
 longer its own, it stops without writing.
 
 Taking a lease: a lease that is absent, released, or expired for more than
-TAKEOVER_GRACE_SECONDS may be taken; a live one refuses with the owner's name.
+TAKEOVER_GRACE_SECONDS may be taken, and so may one whose owner ran on this machine (same
+host name and boot id) and is gone (its pid ended, or belongs to a process started at
+another time): a run killed with SIGKILL, or by the OOM killer, resumes at once with
+`dqnlab resume`. A live one refuses with the owner's name.
 
 Why no file lock: `flock`/`fcntl` locks are not always honoured on NFS (NFSv3 without
 lockd, some client mounts with `nolock`, and a node cut off from the cluster keeps its
@@ -24,6 +27,7 @@ taker never acts on a stale view of a live lease.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import json
 import os
 import secrets
@@ -32,6 +36,8 @@ import threading
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
+
+import psutil
 
 from dqnlab.errors import DqnlabError
 from dqnlab.run.rundir import LEASE_FILE, lease_path
@@ -58,6 +64,8 @@ class LeaseRecord:
     pid: int
     expires_at: float  # wall-clock seconds (time.time()), comparable across nodes (NTP)
     released: bool = False
+    boot_id: str = ""  # the owner machine's boot (empty: unknown, in an older lease)
+    started: float = 0.0  # the owner process's start time (psutil create_time)
 
     def describe(self) -> str:
         left = self.expires_at - time.time()
@@ -65,7 +73,29 @@ class LeaseRecord:
             f"{abs(left):.0f} s {'from now' if left >= 0 else 'ago'})"  # fmt: skip
 
     def takeable(self, now: float) -> bool:
-        return self.released or now > self.expires_at + TAKEOVER_GRACE_SECONDS
+        return (
+            self.released
+            or now > self.expires_at + TAKEOVER_GRACE_SECONDS
+            or self.owner_gone_from_this_machine()
+        )
+
+    def owner_gone_from_this_machine(self) -> bool:
+        """The owner ran on this machine and its process no longer exists."""
+        if not self.boot_id or (self.host, self.boot_id) != (socket.gethostname(), boot_id()):
+            return False
+        try:
+            return abs(psutil.Process(self.pid).create_time() - self.started) > 0.01
+        except psutil.NoSuchProcess:
+            return True
+
+
+def boot_id() -> str:
+    """This machine's boot (Linux), so that a lease names a process of one machine; empty
+    where unknown, and then only the expiry frees a killed owner's lease."""
+    try:
+        return Path("/proc/sys/kernel/random/boot_id").read_text().strip()
+    except OSError:
+        return ""
 
 
 def read_lease(run_dir: Path) -> LeaseRecord | None:
@@ -95,7 +125,13 @@ class RunLease:
 
     def _record(self, released: bool = False) -> LeaseRecord:
         return LeaseRecord(
-            self.token, socket.gethostname(), os.getpid(), time.time() + LEASE_SECONDS, released
+            self.token,
+            socket.gethostname(),
+            os.getpid(),
+            time.time() + LEASE_SECONDS,
+            released,
+            boot_id(),
+            psutil.Process().create_time(),
         )
 
     def _write_temporary(self, record: LeaseRecord) -> Path:
@@ -169,7 +205,7 @@ def release_dead_owner(run_dir: Path, pid: int) -> None:
     current = read_lease(run_dir)
     if current is None or current.pid != pid or current.host != socket.gethostname():
         return
-    released = LeaseRecord(current.token, current.host, pid, current.expires_at, True)
+    released = dataclasses.replace(current, released=True)
     temporary = run_dir / f".{LEASE_FILE}.released.tmp"
     temporary.write_text(json.dumps(asdict(released)))
     os.replace(temporary, lease_path(run_dir))
