@@ -11,7 +11,7 @@ from pathlib import Path
 from dqnlab.config import resolve_config
 from dqnlab.run import rundir
 from dqnlab.run.lease import RunLease
-from dqnlab.tools.status import collect_status, record_attempt, status_json
+from dqnlab.tools.status import collect_status, format_status_table, record_attempt, status_json
 from dqnlab.tools.sweep import parse_variation, plan_grid, write_sweep_file
 
 EPISODES = "step,frames,episode,score,steps,epsilon,wall_seconds\n"
@@ -79,3 +79,20 @@ def test_the_status_command_on_a_sweep_and_on_one_run(tmp_path: Path) -> None:
     assert json.loads(out.read_text())["done"] == 1
     one = collect_status(sweep.runs[0].run_dir)
     assert [s.state for s in one] == ["done"]
+
+
+def test_an_atari_run_under_way_gets_its_on_track_verdict(tmp_path: Path) -> None:
+    run_dir = tmp_path / "pong"
+    run_dir.mkdir()
+    rundir.write_run_config(run_dir, resolve_config("nature", env="pong", total_steps=10**7))
+    # Dopamine's pong runs score -20.6 to -20.2 in the first 1M frames: -15 is above them.
+    rows = "".join(f"{s},{4 * s},{n},-15,{s},1.0,{s / 300}\n" for n, s in enumerate((900, 1800), 1))
+    rundir.episodes_path(run_dir).write_text(EPISODES + rows)
+    (status,) = collect_status(run_dir)
+    assert status.on_track is not None and status.on_track.verdict == "above the range"
+    assert status.on_track.games == 2 and status.on_track.score == -15.0
+    record = status_json([status])["runs"][0]
+    assert record["on_track"]["verdict"] == "above the range"
+    assert record["on_track"]["window_start_frames"] == 0
+    lines = format_status_table([status])
+    assert "above the range" in lines[-1] and "Dopamine DQN" in lines[-2]

@@ -23,9 +23,17 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
+from dqnlab.envs import is_atari
 from dqnlab.errors import DqnlabError
 from dqnlab.run import rundir
 from dqnlab.run.lease import LEASE_SECONDS, TAKEOVER_GRACE_SECONDS, lease_is_live
+from dqnlab.tools.report.reference import (
+    REFERENCE_LABEL,
+    WINDOW_FRAMES,
+    OnTrackRow,
+    load_reference_curves,
+    on_track_row,
+)
 
 STATES = ("pending", "running", "retrying", "stopped", "done", "failed")
 TAIL_BYTES = 8192  # enough of a CSV's end for its last rows
@@ -50,12 +58,24 @@ class RunStatus:
     node: str | None = None  # host of the latest attempt
     started_at: float | None = None  # wall-clock start of the latest attempt
     log_tail: str = field(default="", repr=False)
+    on_track: OnTrackRow | None = field(default=None, repr=False)  # Atari runs under way
 
     def json_fields(self) -> dict[str, Any]:
         keys = ("name", "env", "seed", "settings", "state", "step", "total_steps")
         record = {key: asdict(self)[key] for key in keys}
         record["last_eval_mean"] = self.last_eval_mean
         record["attempts"] = self.attempts
+        row = self.on_track
+        if row is not None:
+            record["on_track"] = {
+                "window_start_frames": None if row.window is None else row.window * WINDOW_FRAMES,
+                "games": row.games,
+                "score": row.score,
+                "reference_mean": row.reference_mean,
+                "reference_low": row.reference_low,
+                "reference_high": row.reference_high,
+                "verdict": row.verdict,
+            }
         return record
 
 
@@ -178,7 +198,27 @@ def load_sweep_file(sweep_dir: Path) -> dict[str, Any] | None:
 
 def collect_status(path: Path) -> list[RunStatus]:
     """Every run of a sweep directory (the grid of its sweep.json, else its run
-    directories), or the one run of a run directory."""
+    directories), or the one run of a run directory, with the on-track verdict of each
+    Atari run that has started (`report.reference`)."""
+    statuses = _collect_status(path)
+    run_dirs = {status.name: path if rundir.is_run_dir(path) else path / status.name
+                for status in statuses}  # fmt: skip
+    curves = load_reference_curves([status.env for status in statuses])
+    for status in statuses:
+        if is_atari(status.env) and status.state != "pending":
+            status.on_track = on_track_row(
+                run_dirs[status.name],
+                status.env,
+                "",
+                curves.get(status.env),
+                steps=status.step,
+                finished=status.state == "done",
+                last_eval_mean=status.last_eval_mean,
+            )
+    return statuses
+
+
+def _collect_status(path: Path) -> list[RunStatus]:
     if rundir.is_run_dir(path):
         return [run_status(path)]
     if not path.is_dir():
@@ -215,7 +255,24 @@ def format_status_table(statuses: list[RunStatus]) -> list[str]:
             f"{steps:>21s} {fps:>9s} {evaluation:>10s} {status.attempts:>8d}"
         )
     lines.append(summary_line(statuses))
+    rows = [(status.name, status.on_track) for status in statuses if status.on_track]
+    if rows:
+        lines.append(
+            f"on track? the latest 1M-frame window of training games against {REFERENCE_LABEL}:"
+        )
+        for name, row in rows:
+            lines.append(f"{name:{width}s}  {_on_track_text(row)}")
     return lines
+
+
+def _on_track_text(row: OnTrackRow) -> str:
+    if row.window is None or row.score is None:
+        return row.why_none or "-"
+    text = f"{row.window}-{row.window + 1}M frames: {row.score:.1f} over {row.games} games"
+    if row.verdict is None:
+        return f"{text}; {row.why_none}"
+    return (f"{text}; reference {row.reference_mean:.1f} ({row.reference_low:.1f} to "
+            f"{row.reference_high:.1f}): {row.verdict}")  # fmt: skip
 
 
 def summary_line(statuses: list[RunStatus], seconds_left: float | None = None) -> str:

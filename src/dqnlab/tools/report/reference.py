@@ -135,50 +135,66 @@ def on_track_rows(
 ) -> list[OnTrackRow]:
     """A row per Atari run (with its configuration's label): its latest window with a
     finished training game, complete or not, against the reference's same window."""
-    rows = []
-    for run, configuration in runs:
-        config = run.config
-        if not is_atari(config.env):
-            continue
-        frames, steps, windows = training_windows(run.run_dir)
-        last_eval = run.evaluations[-1].mean if run.evaluations else None
-        window = max(windows) if windows else None
-        curve = curves.get(config.env)
-        score = reference = low = high = None
-        games = 0
-        why = None
-        if window is not None:
-            games = len(windows[window])
-            score = float(np.mean(windows[window]))
-        if window is None:
-            why = "no training game has ended yet"
-        elif curve is None:
-            why = f"the reference has no curve for {config.env}"
-        elif window >= curve.windows:
-            why = f"the reference ends at {curve.windows}M frames"
-        else:
-            reference = float(curve.mean[window])
-            low, high = float(curve.low[window]), float(curve.high[window])
-        rows.append(
-            OnTrackRow(
-                run_dir=run.run_dir,
-                game=config.env,
-                configuration=configuration,
-                frames=frames,
-                steps=max(steps, run.steps),
-                finished=run.finished,
-                window=window,
-                window_complete=window is not None and frames >= (window + 1) * WINDOW_FRAMES,
-                games=games,
-                score=score,
-                reference_mean=reference,
-                reference_low=low,
-                reference_high=high,
-                verdict=None
-                if score is None or low is None or high is None
-                else verdict(score, low, high),
-                last_eval_mean=last_eval,
-                why_none=why,
-            )
+    return [
+        on_track_row(
+            run.run_dir,
+            run.config.env,
+            configuration,
+            curves.get(run.config.env),
+            steps=run.steps,
+            finished=run.finished,
+            last_eval_mean=run.evaluations[-1].mean if run.evaluations else None,
         )
-    return rows
+        for run, configuration in runs
+        if is_atari(run.config.env)
+    ]
+
+
+def on_track_row(
+    run_dir: Path,
+    game: str,
+    configuration: str,
+    curve: ReferenceCurve | None,
+    *,
+    steps: int,
+    finished: bool,
+    last_eval_mean: float | None,
+) -> OnTrackRow:
+    """One run's row, from its episodes.csv and what the caller knows of it (`steps`: of
+    its newest checkpoint or logs, whichever it read; the larger of that and the logs'
+    counts)."""
+    frames, logged_steps, windows = training_windows(run_dir)
+    window = max(windows) if windows else None
+    score = reference = low = high = None
+    games = 0
+    why = None
+    if window is not None:
+        games = len(windows[window])
+        score = float(np.mean(windows[window]))
+    if window is None:
+        why = "no training game has ended yet"
+    elif curve is None:
+        why = f"the reference has no curve for {game}"
+    elif window >= curve.windows:
+        why = f"the reference ends at {curve.windows}M frames"
+    else:
+        reference = float(curve.mean[window])
+        low, high = float(curve.low[window]), float(curve.high[window])
+    return OnTrackRow(
+        run_dir=run_dir,
+        game=game,
+        configuration=configuration,
+        frames=frames,
+        steps=max(logged_steps, steps),
+        finished=finished,
+        window=window,
+        window_complete=window is not None and frames >= (window + 1) * WINDOW_FRAMES,
+        games=games,
+        score=score,
+        reference_mean=reference,
+        reference_low=low,
+        reference_high=high,
+        verdict=None if score is None or low is None or high is None else verdict(score, low, high),
+        last_eval_mean=last_eval_mean,
+        why_none=why,
+    )
