@@ -131,3 +131,32 @@ def test_a_games_file_and_a_sweep_dir_of_another_sweep(tmp_path: Path, capsys, m
     )
     assert code == 2 and "holds a different sweep (preset nature, varied: discount)" in stderr
     assert (sweep_dir / "sweep.json").read_text() == before
+
+
+def test_a_runs_subprocess_unblocks_the_stop_signals_its_ray_worker_blocks() -> None:
+    """A Ray worker's threads block SIGINT and a child inherits the mask: without the
+    preamble's unblock, Ctrl-C of the driver never reached `dqnlab train`."""
+    import os
+    import signal
+    import subprocess
+    import sys
+
+    from dqnlab.tools.sweep import _DIE_WITH_PARENT
+
+    preamble = _DIE_WITH_PARENT.split("from dqnlab.cli")[0]
+    probe = preamble + "print(open('/proc/self/status').read())\n"
+
+    def block() -> None:
+        signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT, signal.SIGTERM})
+
+    def blocked(code: str) -> int:
+        status = subprocess.run(
+            [sys.executable, "-c", code, str(os.getpid())],
+            preexec_fn=block, capture_output=True, text=True, check=True,
+        ).stdout  # fmt: skip
+        mask = next(line for line in status.splitlines() if line.startswith("SigBlk:"))
+        return int(mask.split()[1], 16)
+
+    both = (1 << (signal.SIGINT - 1)) | (1 << (signal.SIGTERM - 1))
+    assert blocked("print(open('/proc/self/status').read())") & both  # inherited, as from Ray
+    assert blocked(probe) & both == 0

@@ -363,9 +363,13 @@ def check_resources(resources: RunResources, nodes: list[dict[str, float]]) -> N
 # A run, on a Ray worker ----------------------------------------------------------------
 
 # Run first in the subprocess: it gets SIGTERM when the worker that started it dies (a
-# lost node, a killed Ray), checkpoints and stops, instead of training on unowned.
+# lost node, a killed Ray), checkpoints and stops, instead of training on unowned. It
+# unblocks SIGINT and SIGTERM: a Ray worker's threads block SIGINT, a child inherits the
+# mask (measured with Ray 2.60: SigBlk 0x2 in /proc/PID/status), and a blocked SIGINT
+# never reaches the training loop's stop handler, so a Ctrl-C'd sweep trained on.
 _DIE_WITH_PARENT = (
     "import ctypes, os, signal, sys\n"
+    "signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT, signal.SIGTERM})\n"
     "parent = int(sys.argv.pop(1))\n"
     "try:\n"
     "    ctypes.CDLL('libc.so.6').prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG\n"
