@@ -117,7 +117,19 @@ def test_report_and_inspect_two_runs_that_differ_in_one_setting(tmp_path: Path) 
 
 
 @pytest.mark.parametrize(
-    "command", ["train", "resume", "evaluate", "bench", "ablate", "report", "inspect", "games"]
+    "command",
+    [
+        "train",
+        "resume",
+        "evaluate",
+        "bench",
+        "ablate",
+        "sweep",
+        "status",
+        "report",
+        "inspect",
+        "games",
+    ],
 )
 def test_every_command_has_help(command: str) -> None:
     result = dqnlab(command, "--help")
