@@ -369,7 +369,12 @@ def save_final_evaluation(run_dir: Path, record: dict[str, Any]) -> Path:
 
 def load_final_evaluation(run_dir: Path) -> dict[str, Any] | None:
     """The run's saved final evaluation, or None if it has none yet."""
-    path = final_evaluation_path(run_dir)
+    return read_json_file(final_evaluation_path(run_dir))
+
+
+def read_json_file(path: Path) -> dict[str, Any] | None:
+    """A JSON file of a run or sweep directory, None if it does not exist; a damaged one
+    is a one-line error naming it."""
     if not path.is_file():
         return None
     try:

@@ -187,13 +187,7 @@ def _rate(rows: list[dict[str, str]], column: str) -> float | None:
 
 
 def load_sweep_file(sweep_dir: Path) -> dict[str, Any] | None:
-    path = rundir.sweep_file_path(sweep_dir)
-    if not path.is_file():
-        return None
-    try:
-        return json.loads(path.read_text())
-    except json.JSONDecodeError as error:
-        raise DqnlabError(f"{path} is not valid JSON: {error}") from None
+    return rundir.read_json_file(rundir.sweep_file_path(sweep_dir))
 
 
 def collect_status(path: Path) -> list[RunStatus]:
