@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 from collections.abc import Iterator
 from contextlib import contextmanager
 from typing import Any
@@ -26,21 +27,35 @@ def loopback_ray(head_cpus: float, workers: list[dict[str, Any]]) -> Iterator[An
         cluster.shutdown()
 
 
-def ray_processes() -> list[psutil.Process]:
-    """Every process of Ray's (its servers, raylets, workers) and of the runs they start."""
+def ray_processes(driver: int | None = None) -> list[psutil.Process]:
+    """Every process of Ray's (its servers, raylets, workers) and of the runs they start;
+    with `driver`, also that process (a `dqnlab sweep`) and every process under it."""
     found = []
+    if driver is not None:
+        with contextlib.suppress(psutil.NoSuchProcess):
+            parent = psutil.Process(driver)
+            found = [parent, *parent.children(recursive=True)]
+            for process in found:
+                process.info = {"cmdline": _cmdline(process)}
     for process in psutil.process_iter(["cmdline"]):
         command = " ".join(process.info["cmdline"] or [])
         if "ray" in command.split("/")[-1] or "/ray/" in command or "ray::" in command:
             found.append(process)
-    return found
+    return list({process.pid: process for process in found}.values())
 
 
-def non_loopback_sockets() -> list[str]:
-    """The TCP/UDP sockets of Ray's processes with a local or remote address other than
-    127.0.0.1: what the loopback rule forbids."""
+def _cmdline(process: psutil.Process) -> list[str]:
+    try:
+        return process.cmdline()
+    except (psutil.NoSuchProcess, psutil.AccessDenied):
+        return []
+
+
+def non_loopback_sockets(driver: int | None = None) -> list[str]:
+    """The TCP/UDP sockets of Ray's processes (and of `driver`'s, see `ray_processes`) with
+    a local or remote address other than 127.0.0.1: what the loopback rule forbids."""
     bad = []
-    for process in ray_processes():
+    for process in ray_processes(driver):
         try:
             connections = process.net_connections(kind="inet")
         except (psutil.NoSuchProcess, psutil.AccessDenied):

@@ -11,6 +11,7 @@ from dqnlab.run import rundir
 from dqnlab.run.rundir import load_run_config
 from dqnlab.tools.ablate import Variation, check_sweep_dir, parse_variation, plan_sweep, run_sweep
 from tests.tools.ray_helpers import loopback_ray, non_loopback_sockets
+from tests.tools.test_sweep import dqnlab_main
 
 TINY = {
     "replay_start_steps": 100,
@@ -161,3 +162,30 @@ def test_a_sweep_dir_holding_other_runs_is_refused(tmp_path: Path, ray_cluster) 
     (tmp_path / "config.toml").write_text("")
     with pytest.raises(DqnlabError, match="is a run directory"):
         check_sweep_dir(plan("0.9"))
+
+
+@pytest.mark.parametrize(
+    ("options", "message"),
+    [
+        (["--gpus-per-run", "0.25"], "--gpus-per-run 0.25: the cluster has no GPUs (2 nodes)"),
+        (["--memory-per-run", "100000"], "100000.0 GB of memory, more than any node has"),
+        (["--cpus-per-run", "3"], "each run asks for 3 CPUs"),
+    ],
+)
+def test_resources_the_cluster_lacks_are_refused_before_any_run(
+    tmp_path: Path,
+    capsys,
+    monkeypatch,
+    ray_cluster,
+    options: list[str],
+    message: str,  # noqa: ANN001
+) -> None:
+    """On a running cluster (this module's: a head and a node of 2 CPUs, no GPU), through
+    the command: one line, exit 2, nothing written."""
+    sweep_dir = tmp_path / "sweep"
+    code, stderr = dqnlab_main(
+        capsys, monkeypatch, "sweep", "--env", "CartPole-v1", "--sweep-dir", str(sweep_dir),
+        *options,
+    )  # fmt: skip
+    assert code == 2 and message in stderr, stderr
+    assert len(stderr.strip().splitlines()) == 1 and not sweep_dir.exists()

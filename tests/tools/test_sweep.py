@@ -116,6 +116,19 @@ def test_bad_input_gives_one_line_and_exit_2(
     assert not sweep_dir.exists()
 
 
+def test_address_auto_goes_where_ray_address_says(tmp_path: Path, capsys, monkeypatch) -> None:  # noqa: ANN001
+    """`auto` resolves the address as Ray does (RAY_ADDRESS first, as `ray job submit` sets
+    it for its entrypoint), and checks that it answers before Ray is asked to join it."""
+    monkeypatch.setenv("RAY_ADDRESS", "127.0.0.1:9")
+    sweep_dir = tmp_path / "sweep"
+    code, stderr = dqnlab_main(
+        capsys, monkeypatch, "sweep", "--env", "pong", "--address", "auto", "--sweep-dir",
+        str(sweep_dir),
+    )  # fmt: skip
+    assert code == 2 and "--address auto (127.0.0.1:9): nothing answers at 127.0.0.1:9" in stderr
+    assert len(stderr.strip().splitlines()) == 1 and not sweep_dir.exists()
+
+
 def test_a_games_file_and_a_sweep_dir_of_another_sweep(tmp_path: Path, capsys, monkeypatch) -> None:  # noqa: ANN001
     games = tmp_path / "games.txt"
     games.write_text("pong  # the first\nbreakoutt\n")

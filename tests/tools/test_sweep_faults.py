@@ -8,7 +8,6 @@ comparison), and no node may ever hold two runs at once.
 
 from __future__ import annotations
 
-import os
 import signal
 import subprocess
 import sys
@@ -21,6 +20,7 @@ import pytest
 
 from dqnlab.tools.status import read_attempts, run_status
 from dqnlab.tools.sweep import (
+    PlannedRun,
     RunResources,
     Sweep,
     parse_variation,
@@ -50,26 +50,6 @@ def worker_node() -> dict[str, Any]:
 def ray_cluster():  # noqa: ANN201
     with loopback_ray(0, [worker_node(), worker_node()]) as cluster:
         yield cluster
-
-
-@pytest.fixture(scope="module")
-def trained_alone(tmp_path_factory: pytest.TempPathFactory):  # noqa: ANN201
-    """The reference of a run: its config file trained by `dqnlab train` alone, once."""
-    cache: dict[str, Path] = {}
-
-    def reference(config_path: Path, env: str) -> Path:
-        key = config_path.read_text()
-        if key not in cache:
-            run_dir = tmp_path_factory.mktemp("alone") / "run"
-            subprocess.run(
-                [sys.executable, "-m", "dqnlab", "train", "--env", env, "--preset",
-                 str(config_path), "--run-dir", str(run_dir), "--device", "cpu", "--no-progress"],
-                check=True, capture_output=True, env={**os.environ, "OMP_NUM_THREADS": "1"},
-            )  # fmt: skip
-            cache[key] = run_dir
-        return cache[key]
-
-    return reference
 
 
 def plan(sweep_dir: Path, seeds: int) -> Sweep:
@@ -148,35 +128,34 @@ def check_node_loss(
 
 
 def test_a_killed_driver_run_again_carries_on(tmp_path: Path, ray_cluster, trained_alone) -> None:  # noqa: ANN001
+    """Four runs on two nodes: the driver is killed once a run has finished and one of the
+    second pair trains; the same command again skips the finished runs (their files
+    untouched), resumes the others, and every run equals the same run trained alone."""
     sweep_dir = tmp_path / "sweep"
     command = [
-        sys.executable, "-m", "dqnlab", "sweep", "--env", "CartPole-v1",
+        sys.executable, "-m", "dqnlab", "sweep", "--env", "CartPole-v1", "--seeds", "2",
         "--vary", "discount=0.9,0.99", "--steps", str(STEPS), "--sweep-dir", str(sweep_dir),
         "--address", ray_cluster.address, "--cpus-per-run", "1", "--memory-per-run", "2",
         "--no-report", *[f"--set={key}={value}" for key, value in SETTINGS.items()],
     ]  # fmt: skip
     driver = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
-    sweep = plan(sweep_dir, seeds=1)
-    finished_first = None
+    sweep = plan(sweep_dir, seeds=2)
+    done: list[PlannedRun] = []
     while driver.poll() is None:
         states = [run_status(run.run_dir, planned_record(run)) for run in sweep.runs]
         done = [run for run, s in zip(sweep.runs, states, strict=True) if s.state == "done"]
-        busy = [s for s in states if s.state == "running" and s.step >= 300]
-        if done and busy or len(done) == 0 and sum(1 for s in busy) == 2:
-            finished_first = done[0] if done else None
+        if done and any(s.state == "running" and s.step >= 300 for s in states):
             break
         time.sleep(0.2)
-    assert driver.poll() is None, driver.stdout.read() if driver.stdout else ""
-    kept = {}
-    if finished_first is not None:
-        kept = {path: path.stat().st_mtime_ns for path in finished_first.run_dir.rglob("*")}
+    assert driver.poll() is None and done, driver.stdout.read() if driver.stdout else ""
+    kept = {path: path.stat().st_mtime_ns for run in done for path in run.run_dir.rglob("*")}
     driver.send_signal(signal.SIGKILL)
     driver.wait()
     again = subprocess.run(command, capture_output=True, text=True, timeout=900)
     assert again.returncode == 0, again.stdout + again.stderr
-    if finished_first is not None:
-        assert "already finished, skipped" in again.stdout
-        assert {path: path.stat().st_mtime_ns for path in kept} == kept  # not trained again
+    for run in done:
+        assert f"{run.name}: already finished, skipped" in again.stdout
+    assert {path: path.stat().st_mtime_ns for path in kept} == kept  # not trained again
     for run in sweep.runs:
         config_path = sweep_dir / "logs" / f"{run.name}.toml"
         assert_same_run(trained_alone(config_path, "CartPole-v1"), run.run_dir)

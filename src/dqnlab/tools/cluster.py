@@ -3,8 +3,9 @@
 `--address local` (the default) starts a Ray head on this machine with
 `ray.cluster_utils.Cluster`, every process bound to 127.0.0.1 (nothing listens on the
 machine's outward address), and connects to it. `auto`, `HOST:PORT` and
-`ray://HOST:PORT` join a cluster that is already running; only a loopback HOST gets the
-loopback treatment, a real cluster's address is used as Ray resolves it.
+`ray://HOST:PORT` join a cluster that is already running (`auto` as Ray finds it:
+RAY_ADDRESS, else the cluster `ray start` last started here); only a loopback HOST gets
+the loopback treatment, a real cluster's address is used as Ray resolves it.
 
 Ray is imported here, inside functions, so that `dqnlab --help` and the rest of the
 package never import it.
@@ -30,6 +31,9 @@ RAY_INSTALL = 'pip install "ray>=2.40,<3"'
 # Start-up work a sweep does not need: no usage report (it would reach the internet), no
 # dashboard, no import warnings.
 RAY_ENVIRONMENT = {"RAY_USAGE_STATS_ENABLED": "0", "RAY_DISABLE_IMPORT_WARNING": "1"}
+# 0: Ray treats the machine as a one-machine Ray, whose node address is 127.0.0.1 (the
+# switch Windows and macOS default to; `ray._private.ray_constants.ENABLE_RAY_CLUSTER`).
+LOOPBACK_ONLY_VARIABLE = "RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER"
 
 
 # The driver prints its own lines: no Ray INFO lines, no copy of every worker's output.
@@ -92,21 +96,30 @@ class Connection:
 
 
 def start_loopback_cluster(
-    head_cpus: float, worker_nodes: list[dict[str, Any]] | None = None
+    head_cpus: float, worker_nodes: list[dict[str, Any]] | None = None, **head_args: Any
 ) -> Any:
     """A Ray cluster on this machine whose every process binds to 127.0.0.1: a head with
     `head_cpus` CPUs for runs (0: the head only schedules), then one node per entry of
-    `worker_nodes` (keyword arguments of `Cluster.add_node`, e.g. num_cpus, memory)."""
+    `worker_nodes` (keyword arguments of `Cluster.add_node`, e.g. num_cpus, memory).
+    `head_args` go to the head's `add_node` too (ray_client_server_port=PORT serves
+    `ray://127.0.0.1:PORT`, on loopback like the rest)."""
     import_ray()
     from ray.cluster_utils import Cluster
 
     set_ray_environment()
+    # Inherited by every process the cluster starts (and theirs): Ray's own switch for a
+    # one-machine Ray, under which `resolve_ip_for_localhost` answers 127.0.0.1 instead of
+    # the outward address. It reaches the processes this one does not patch: the Ray
+    # Client server's per-driver server joined the head through the outward address
+    # without it (and timed out: nothing listens there).
+    os.environ[LOOPBACK_ONLY_VARIABLE] = "0"
     cluster = Cluster(
         initialize_head=True,
         head_node_args={
             "num_cpus": head_cpus,
             "include_dashboard": False,
             "node_ip_address": LOOPBACK,
+            **head_args,
         },
     )
     for node in worker_nodes or []:
@@ -137,17 +150,15 @@ def connect(address: str) -> Connection:
         cluster = start_loopback_cluster(head_cpus=psutil.cpu_count() or 1)
         connect_to_cluster(cluster)
         return Connection(cluster.address, local_cluster=cluster)
-    host = None
-    if address != "auto":
-        host, port = parse_address(address)
-        check_reachable(address, host, port)
-    if host in LOOPBACK_HOSTS:
-        keep_loopback_addresses()
+    target = find_auto_address() if address == "auto" else address
+    host, port = parse_address(target)
+    check_reachable(address if target == address else f"auto ({target})", host, port)
+    keep_loopback_addresses()  # changes nothing for a host that is not loopback
     options: dict[str, Any] = dict(QUIET_DRIVER)
-    if host in LOOPBACK_HOSTS and not address.startswith("ray://"):
+    if host in LOOPBACK_HOSTS and not target.startswith("ray://"):
         options["_node_ip_address"] = LOOPBACK
     try:
-        ray.init(address=address, **options)
+        ray.init(address=target, **options)
     except (ConnectionError, RuntimeError, ValueError) as error:
         first_line = str(error).strip().splitlines()[0] if str(error).strip() else ""
         raise DqnlabError(
@@ -156,6 +167,27 @@ def connect(address: str) -> Connection:
             "ray://HOST:PORT"
         ) from None
     return Connection(address)
+
+
+def find_auto_address() -> str:
+    """The cluster `--address auto` joins, found as Ray finds it: RAY_ADDRESS (set for a
+    `ray job submit` entrypoint), else the cluster last started on this node (`ray start`
+    writes its address under Ray's temporary directory). Resolved here rather than by
+    `ray.init`, so that a loopback cluster is joined on loopback (see
+    `keep_loopback_addresses`) and a missing one fails with one line."""
+    from ray._private import services
+
+    try:
+        found = services.get_ray_address_from_environment("auto", None)
+    except ConnectionError:
+        found = None
+    if not found or found == "auto":
+        raise DqnlabError(
+            "--address auto: no running Ray cluster found on this node (RAY_ADDRESS is not "
+            "set and no `ray start` left its address); start one with `ray start --head`, "
+            "or use --address local or HOST:PORT"
+        )
+    return str(found)
 
 
 def parse_address(address: str) -> tuple[str, int]:
