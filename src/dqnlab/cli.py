@@ -499,7 +499,12 @@ def sweep(
         )
         _run_or_stop(
             lambda: run_sweep_on_ray(
-                sweep_plan, resources, device=device, max_retries=max_retries, echo=typer.echo
+                sweep_plan,
+                resources,
+                device=device,
+                max_retries=max_retries,
+                echo=typer.echo,
+                live=sys.stdout.isatty(),
             )
         )
     _report_sweep(sweep_plan, episodes, "cpu", report)

@@ -1,6 +1,6 @@
 """Where a sweep's runs stand, read from their run directories alone (no Ray), so that
 `dqnlab status` works from any machine that sees the storage, and the sweep's live table
-shows the same.
+shows the same: both draw the columns of `COLUMNS` and the overall bar of `sweep_progress`.
 
 A run's state:
     pending    nothing trained yet (no attempt started)
@@ -19,9 +19,16 @@ import io
 import json
 import math
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
+
+from rich import box
+from rich.console import Group, RenderableType
+from rich.progress_bar import ProgressBar
+from rich.table import Table
+from rich.text import Text
 
 from dqnlab.envs import is_atari
 from dqnlab.errors import DqnlabError
@@ -40,6 +47,9 @@ TAIL_BYTES = 8192  # enough of a CSV's end for its last rows
 # An attempt that started this recently and holds no lease yet is starting up, not lost.
 STARTING_SECONDS = LEASE_SECONDS + TAKEOVER_GRACE_SECONDS
 RATE_ROWS = 10  # frames/s over the last rows of episodes.csv
+NODE_WIDTH = 14  # a node's name in the table, cut to this
+TEXT_BAR_WIDTH, BAR_WIDTH = 20, 30  # the overall bar's characters: as text, live
+STATE_STYLES = {"retrying": "yellow", "stopped": "yellow", "done": "dim", "failed": "bold red"}
 
 
 @dataclass
@@ -234,28 +244,53 @@ def status_json(statuses: list[RunStatus]) -> dict[str, Any]:
     }
 
 
+@dataclass(frozen=True)
+class Column:
+    """A column of the status table, the same in `dqnlab status` and the sweep's live
+    table: its header, its alignment and the text of a run's cell."""
+
+    header: str
+    justify: Literal["left", "right"]
+    cell: Callable[[RunStatus], str]
+
+
+def _frames_per_second_text(status: RunStatus) -> str:
+    return f"{status.frames_per_second:.0f}" if status.frames_per_second else "-"
+
+
+def _evaluation_text(status: RunStatus) -> str:
+    return "-" if status.last_eval_mean is None else f"{status.last_eval_mean:.2f}"
+
+
+COLUMNS = (
+    Column("run", "left", lambda status: status.name),
+    Column("node", "left", lambda status: (status.node or "-")[:NODE_WIDTH]),
+    Column("state", "left", lambda status: status.state),
+    Column("step", "right", lambda status: f"{status.step:,} / {status.total_steps:,}"),
+    Column("frames/s", "right", _frames_per_second_text),
+    Column("last eval", "right", _evaluation_text),
+    Column("attempts", "right", lambda status: str(status.attempts)),
+)
+
+
 def format_status_table(statuses: list[RunStatus]) -> list[str]:
-    """One line per run: run, node, state, step of total, frames/s, last evaluation,
-    attempts; then the overall line."""
-    width = max([len(status.name) for status in statuses] + [3])
-    lines = [f"{'run':{width}s}  {'node':14s} {'state':9s} {'step':>21s} {'frames/s':>9s} "
-             f"{'last eval':>10s} {'attempts':>8s}"]  # fmt: skip
-    for status in statuses:
-        fps = f"{status.frames_per_second:.0f}" if status.frames_per_second else "-"
-        evaluation = f"{status.last_eval_mean:.2f}" if status.last_eval_mean is not None else "-"
-        steps = f"{status.step:,} / {status.total_steps:,}"
-        lines.append(
-            f"{status.name:{width}s}  {(status.node or '-')[:14]:14s} {status.state:9s} "
-            f"{steps:>21s} {fps:>9s} {evaluation:>10s} {status.attempts:>8d}"
-        )
+    """One line per run (`COLUMNS`), then the overall line, then the on-track verdicts."""
+    rows = [[column.header for column in COLUMNS]]
+    rows += [[column.cell(status) for column in COLUMNS] for status in statuses]
+    widths = [max(len(row[index]) for row in rows) for index in range(len(COLUMNS))]
+    lines = [
+        "  ".join(text.ljust(width) if column.justify == "left" else text.rjust(width)
+                  for column, text, width in zip(COLUMNS, row, widths, strict=True)).rstrip()
+        for row in rows
+    ]  # fmt: skip
     lines.append(summary_line(statuses))
-    rows = [(status.name, status.on_track) for status in statuses if status.on_track]
-    if rows:
+    on_track = [(status.name, status.on_track) for status in statuses if status.on_track]
+    if on_track:
         lines.append(
             f"on track? the latest 1M-frame window of training games against {REFERENCE_LABEL}:"
         )
-        for name, row in rows:
-            lines.append(f"{name:{width}s}  {_on_track_text(row)}")
+        for name, row in on_track:
+            lines.append(f"{name:{widths[0]}s}  {_on_track_text(row)}")
     return lines
 
 
@@ -269,18 +304,74 @@ def _on_track_text(row: OnTrackRow) -> str:
             f"{row.reference_high:.1f}): {row.verdict}")  # fmt: skip
 
 
-def summary_line(statuses: list[RunStatus], seconds_left: float | None = None) -> str:
-    """The overall bar: runs by state, steps done of all, and the time left if known."""
-    counts = {state: sum(s.state == state for s in statuses) for state in STATES}
-    done_steps = sum(status.step for status in statuses)
-    all_steps = sum(status.total_steps for status in statuses) or 1
-    filled = int(20 * done_steps / all_steps)
-    parts = [f"{count} {state}" for state, count in counts.items() if count]
-    line = (f"[{'#' * filled}{'.' * (20 - filled)}] {100 * done_steps / all_steps:.0f}% of "
-            f"{all_steps:,} steps; " + ", ".join(parts))  # fmt: skip
-    if seconds_left is not None:
-        line += f"; about {_duration(seconds_left)} left"
-    return line
+def live_table(statuses: list[RunStatus]) -> RenderableType:
+    """The sweep's live table (rich): the overall bar on top, where a grid taller than the
+    terminal does not cut it off, then a row per run (`COLUMNS`)."""
+    progress = sweep_progress(statuses)
+    bar = Table.grid(padding=(0, 1))
+    bar.add_row(
+        ProgressBar(total=progress.all_steps, completed=progress.done_steps, width=BAR_WIDTH),
+        Text(summary_text(progress)),
+    )
+    table = Table(box=box.SIMPLE_HEAD, show_edge=False, pad_edge=False)
+    for column in COLUMNS:
+        table.add_column(column.header, justify=column.justify, no_wrap=True)
+    for status in statuses:
+        table.add_row(*(Text(column.cell(status)) for column in COLUMNS),
+                      style=STATE_STYLES.get(status.state))  # fmt: skip
+    return Group(bar, table)
+
+
+@dataclass(frozen=True)
+class SweepProgress:
+    """The overall bar's figures."""
+
+    done_steps: int
+    all_steps: int
+    runs_done: int
+    runs: int
+    counts: dict[str, int]  # runs in each state
+    seconds_left: float | None
+
+
+def sweep_progress(statuses: list[RunStatus]) -> SweepProgress:
+    counts = {state: sum(status.state == state for status in statuses) for state in STATES}
+    return SweepProgress(
+        done_steps=sum(status.step for status in statuses),
+        all_steps=sum(status.total_steps for status in statuses) or 1,
+        runs_done=counts["done"],
+        runs=len(statuses),
+        counts=counts,
+        seconds_left=estimate_seconds_left(statuses),
+    )
+
+
+def estimate_seconds_left(statuses: list[RunStatus]) -> float | None:
+    """Steps left over the running runs' steps per second, assuming as many runs keep
+    running at that speed."""
+    rates = [s.steps_per_second for s in statuses if s.state == "running" and s.steps_per_second]
+    if not rates:
+        return None
+    left = sum(s.total_steps - s.step for s in statuses if s.state not in ("done", "failed"))
+    return left / sum(rates)
+
+
+def summary_text(progress: SweepProgress) -> str:
+    """The overall bar's words: steps done of all, runs done, runs by state, time left."""
+    percent = 100 * progress.done_steps / progress.all_steps
+    parts = [f"{count} {state}" for state, count in progress.counts.items() if count]
+    text = (f"{percent:.0f}% of {progress.all_steps:,} steps, {progress.runs_done}/"
+            f"{progress.runs} runs done; " + ", ".join(parts))  # fmt: skip
+    if progress.seconds_left is not None:
+        text += f"; about {_duration(progress.seconds_left)} left"
+    return text
+
+
+def summary_line(statuses: list[RunStatus]) -> str:
+    """The overall bar as text: [####......] and `summary_text`."""
+    progress = sweep_progress(statuses)
+    filled = int(TEXT_BAR_WIDTH * progress.done_steps / progress.all_steps)
+    return f"[{'#' * filled}{'.' * (TEXT_BAR_WIDTH - filled)}] {summary_text(progress)}"
 
 
 def _duration(seconds: float) -> str:

@@ -38,7 +38,9 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
+
+from rich.live import Live
 
 from dqnlab.config import (
     Config,
@@ -496,11 +498,14 @@ def run_sweep_on_ray(
     echo: Callable[[str], Any] = print,
     poll_seconds: float = 1.0,
     summary_seconds: float = SUMMARY_SECONDS,
+    live: bool = False,
 ) -> Sweep:
     """Train every unfinished run of `sweep` as a Ray task (the caller is connected to Ray
     and has checked the inputs), printing a line per change of a run's state and an overall
-    line at least every `summary_seconds`. Ctrl-C cancels the tasks: each run writes a
-    checkpoint first; then KeyboardInterrupt is raised again."""
+    line at least every `summary_seconds`; `live` (the output is a terminal): one table
+    redrawn in place instead, with the lines that matter afterwards (a run finished, failed,
+    stopped) printed above it. Ctrl-C cancels the tasks: each run writes a checkpoint
+    first; then KeyboardInterrupt is raised again."""
     import ray
 
     token = write_sweep_file(sweep)
@@ -530,59 +535,90 @@ def run_sweep_on_ray(
         pending[remote.remote(task)] = run
         echo(f"dqnlab: [{index}/{total}] {run.name}: submitted (log: {run.log})")
     try:
-        _follow(sweep, pending, echo, poll_seconds, summary_seconds)
+        if live:
+            with Live(auto_refresh=False) as screen:
+                _follow(sweep, pending, _LiveTable(screen), poll_seconds)
+        else:
+            _follow(sweep, pending, _StateLines(echo, summary_seconds), poll_seconds)
     except KeyboardInterrupt:
-        _stop(pending, echo)
+        _stop(pending, echo)  # the live table has left the terminal: plain lines
         raise
     return sweep
 
 
+class _Display(Protocol):
+    def message(self, text: str) -> None: ...
+
+    def update(self, statuses: list[run_states.RunStatus], last: bool) -> None: ...
+
+
 def _follow(
-    sweep: Sweep,
-    pending: dict[Any, PlannedRun],
-    echo: Callable[[str], Any],
-    poll_seconds: float,
-    summary_seconds: float,
+    sweep: Sweep, pending: dict[Any, PlannedRun], display: _Display, poll_seconds: float
 ) -> None:
-    """The live table: a line per state change of a run, an overall line periodically."""
+    """Until every task has returned: each returned task's outcome as a message, and every
+    run's state (from its files) to the display after each poll."""
     import ray
 
-    states = {run.name: run.status for run in sweep.runs}
-    started = time.monotonic()
-    last_summary = started
-    first_steps = {run.name: 0 for run in sweep.runs}
     while pending:
         ready, _ = ray.wait(list(pending), num_returns=len(pending), timeout=poll_seconds)
         for reference in ready:
-            _finish(pending.pop(reference), reference, echo)
-        statuses = []
-        for run in sweep.runs:
-            status = run_states.run_status(run.run_dir, planned_record(run))
-            if run.status in ("done", "ok", "failed", "stopped"):
-                status.state = {"ok": "done"}.get(run.status, run.status)
-            elif status.state in ("done", "failed", "stopped"):
-                status.state = "running"  # the task has not returned yet
-            statuses.append(status)
-            if states[run.name] != status.state:
-                states[run.name] = status.state
-                if status.state in ("running", "retrying"):
-                    first_steps.setdefault(run.name, status.step)
-                    echo(f"dqnlab: {run.name}: {status.state} on {status.node or '?'} "
-                         f"(attempt {status.attempts}, step {status.step:,})")  # fmt: skip
+            _finish(pending.pop(reference), reference, display.message)
+        display.update([_polled_status(run) for run in sweep.runs], last=not pending)
+
+
+def _polled_status(run: PlannedRun) -> run_states.RunStatus:
+    """The run's state from its files, corrected by what the driver knows: its task has
+    returned (done, failed, stopped) or not yet (running)."""
+    status = run_states.run_status(run.run_dir, planned_record(run))
+    if run.status in ("done", "ok", "failed", "stopped"):
+        status.state = {"ok": "done"}.get(run.status, run.status)
+    elif status.state in ("done", "failed", "stopped"):
+        status.state = "running"  # the task has not returned yet
+    if status.state == "done":
+        status.step = status.total_steps
+    return status
+
+
+class _StateLines:
+    """A log's view of the sweep (a file, `ray job submit`, tests): a line per change of a
+    run's state, and the overall line at least every `summary_seconds` and at the end."""
+
+    def __init__(self, echo: Callable[[str], Any], summary_seconds: float) -> None:
+        self.echo, self.summary_seconds = echo, summary_seconds
+        self.states: dict[str, str] = {}
+        self.last_summary = time.monotonic()
+
+    def message(self, text: str) -> None:
+        self.echo(text)
+
+    def update(self, statuses: list[run_states.RunStatus], last: bool) -> None:
+        for status in statuses:
+            if self.states.get(status.name, "pending") == status.state:
+                continue
+            self.states[status.name] = status.state
+            if status.state in ("running", "retrying"):
+                self.echo(f"dqnlab: {status.name}: {status.state} on {status.node or '?'} "
+                          f"(attempt {status.attempts}, step {status.step:,})")  # fmt: skip
         now = time.monotonic()
-        if now - last_summary >= summary_seconds or not pending:
-            last_summary = now
-            echo("dqnlab: " + run_states.summary_line(statuses, _seconds_left(statuses)))
+        if now - self.last_summary >= self.summary_seconds or last:
+            self.last_summary = now
+            self.echo("dqnlab: " + run_states.summary_line(statuses))
 
 
-def _seconds_left(statuses: list[run_states.RunStatus]) -> float | None:
-    """Steps left over the running runs' steps per second, assuming as many runs keep
-    running at that speed."""
-    rates = [s.steps_per_second for s in statuses if s.state == "running" and s.steps_per_second]
-    if not rates:
-        return None
-    left = sum(s.total_steps - s.step for s in statuses if s.state not in ("done", "failed"))
-    return left / sum(rates)
+class _LiveTable:
+    """A terminal's view of the sweep: `status.live_table` redrawn in place after each
+    poll (about once a second), messages printed above it, where they stay in the
+    scrollback."""
+
+    def __init__(self, screen: Live) -> None:
+        self.screen = screen
+
+    def message(self, text: str) -> None:
+        # A log's tail is plain text: brackets in it are not rich markup.
+        self.screen.console.print(text, markup=False, highlight=False, emoji=False)
+
+    def update(self, statuses: list[run_states.RunStatus], last: bool) -> None:
+        self.screen.update(run_states.live_table(statuses), refresh=True)
 
 
 def planned_record(run: PlannedRun) -> dict[str, Any]:
