@@ -248,23 +248,52 @@ def bench(
     scan_steps: Annotated[
         int, typer.Option(help="Frames of random play per game for --compression-scan")
     ] = 16_384,
+    sweep: Annotated[
+        bool,
+        typer.Option(
+            "--sweep",
+            help="Instead of the rest: what Ray adds to a sweep (its start-up, and per run "
+            "against the same runs trained by hand), and the time from a lost node to its "
+            "run training again, on loopback clusters of this machine",
+        ),
+    ] = False,
+    sweep_runs: Annotated[
+        int, typer.Option(help="Tiny CartPole runs trained each way in each --sweep repeat")
+    ] = 4,
+    sweep_repeats: Annotated[
+        int, typer.Option(help="Times --sweep trains the runs by hand and by the sweep, in turn")
+    ] = 2,
 ) -> None:
-    """Measure training and evaluation throughput, the update, and replay memory use."""
+    """Measure training and evaluation throughput, the update, and replay memory use (with
+    --sweep: what Ray adds to a sweep's runs, and how soon a lost node's run trains again)."""
     from dqnlab.tools.bench import run_benchmark
 
     if compression_scan is not None:
         _compression_scan(compression_scan, scan_steps)
         return
-    figures = run_benchmark(
-        env,
-        steps,
-        replay_capacity,
-        resolve_device(device),
-        peers=peers,
-        compile_update=compile_update,
-        compression_fill_steps=compression_fill_steps,
-        compression_checkpoint_capacity=compression_checkpoint_capacity,
-    )
+    if sweep:
+        import tempfile
+
+        from dqnlab.tools.sweep_bench import run_sweep_benchmark
+
+        with tempfile.TemporaryDirectory(prefix="dqnlab-sweep-bench-") as directory:
+            figures = run_sweep_benchmark(
+                Path(directory),
+                sweep_runs,
+                sweep_repeats,
+                echo=lambda line: typer.echo(line, err=True),
+            )
+    else:
+        figures = run_benchmark(
+            env,
+            steps,
+            replay_capacity,
+            resolve_device(device),
+            peers=peers,
+            compile_update=compile_update,
+            compression_fill_steps=compression_fill_steps,
+            compression_checkpoint_capacity=compression_checkpoint_capacity,
+        )
     for name, value in figures.items():
         typer.echo(f"{name:40s} {value:.4g}" if isinstance(value, float) else f"{name:40s} {value}")
     if json_path:
