@@ -401,7 +401,15 @@ def ablate(
     jobs = jobs or default_jobs(sweep)
     typer.echo(f"dqnlab: {len(sweep.runs)} runs into {sweep_dir}, {jobs} at a time")
     with _ray_connection("local"):
-        _run_or_stop(lambda: run_sweep(sweep, jobs=jobs, device=str(torch_device), echo=typer.echo))
+        _run_or_stop(
+            lambda: run_sweep(
+                sweep,
+                jobs=jobs,
+                device=str(torch_device),
+                echo=typer.echo,
+                live=sys.stdout.isatty(),
+            )  # fmt: skip
+        )
     _report_sweep(sweep, episodes, device, report=True)
 
 

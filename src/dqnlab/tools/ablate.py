@@ -77,12 +77,16 @@ def run_sweep(
     device: str,
     echo: Callable[[str], Any] = print,
     poll_seconds: float = 0.5,
+    live: bool = False,
 ) -> Sweep:
     """Train every run not yet finished, `jobs` at a time, on the Ray this process is
     connected to: each run asks for the machine's cores over `jobs` (its PyTorch threads)
-    and, on a GPU, that share of it. A failed run does not stop the others."""
+    and, on a GPU, that share of it. A failed run does not stop the others. `live`: the
+    table redrawn in place (a terminal), as `run_sweep_on_ray`."""
     cores = psutil.cpu_count() or 1
     gpus = 1.0 / jobs if device.startswith("cuda") else 0.0
     # Memory is not asked for: `jobs` (default_jobs) already counts it on this machine.
     resources = RunResources(cpus=max(1, cores // jobs), gpus=gpus, memory_bytes=0)
-    return run_sweep_on_ray(sweep, resources, device=device, echo=echo, poll_seconds=poll_seconds)
+    return run_sweep_on_ray(
+        sweep, resources, device=device, echo=echo, poll_seconds=poll_seconds, live=live
+    )
