@@ -148,7 +148,11 @@ def connect(address: str) -> Connection:
         return Connection(address, connected_here=False)
     if address == "local":
         cluster = start_loopback_cluster(head_cpus=psutil.cpu_count() or 1)
-        connect_to_cluster(cluster)
+        try:
+            connect_to_cluster(cluster)
+        except BaseException:
+            cluster.shutdown()  # not left running behind a failed start
+            raise
         return Connection(cluster.address, local_cluster=cluster)
     target = find_auto_address() if address == "auto" else address
     host, port = parse_address(target)

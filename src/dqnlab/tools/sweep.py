@@ -364,6 +364,13 @@ def check_resources(resources: RunResources, nodes: list[dict[str, float]]) -> N
 
 # A run, on a Ray worker ----------------------------------------------------------------
 
+# The Ray workers that run the runs, on any cluster. A worker that exits (its node lost,
+# its raylet gone) SIGKILLs its child processes unless told not to (Ray 2.60: "Try killing
+# all child processes of this worker as it exits" in the worker's log): the run's process
+# would die without its stop checkpoint and without releasing its lease. Without that
+# kill, `_DIE_WITH_PARENT`'s SIGTERM reaches it and it checkpoints and stops.
+WORKER_ENVIRONMENT = {"RAY_kill_child_processes_on_worker_exit": "0"}
+
 # Run first in the subprocess: it gets SIGTERM when the worker that started it dies (a
 # lost node, a killed Ray), checkpoints and stops, instead of training on unowned. It
 # unblocks SIGINT and SIGTERM: a Ray worker's threads block SIGINT, a child inherits the
@@ -514,6 +521,7 @@ def run_sweep_on_ray(
     remote = ray.remote(train_attempt).options(
         num_cpus=resources.cpus, num_gpus=resources.gpus, memory=resources.memory_bytes or None,
         max_retries=max_retries, retry_exceptions=[RunProcessKilled],
+        runtime_env={"env_vars": dict(WORKER_ENVIRONMENT)},
     )  # fmt: skip
     total = len(sweep.runs)
     pending: dict[Any, PlannedRun] = {}
