@@ -140,15 +140,43 @@ def running_cluster() -> Iterator[tuple[Any, int, dict[str, str]]]:
         shutil.rmtree(temporary, ignore_errors=True)
 
 
-@pytest.mark.parametrize("address", ["auto", "ray://"])
-def test_a_running_loopback_cluster_is_joined_on_loopback(
+def test_auto_joins_the_running_loopback_cluster_and_reports_despite_a_failed_run(
     tmp_path: Path,
     running_cluster,  # noqa: ANN001
-    address: str,
+) -> None:
+    """`--address auto` finds the cluster `ray start` would have left; one run of two fails
+    (its directory holds something else); the other trains, the sweep reports it into
+    SWEEP/report and then names the failed run with its log's tail, exit status 2."""
+    cluster, _, environment = running_cluster
+    sweep_dir, log = tmp_path / "sweep", tmp_path / "driver.log"
+    sweep = plan(sweep_dir)
+    blocked = sweep.runs[1].run_dir
+    blocked.mkdir(parents=True)
+    (blocked / "notes.txt").write_text("not a run")
+    command = [
+        part for part in sweep_command(sweep_dir, "--address", "auto") if part != "--no-report"
+    ]
+    driver = start_driver(command, log, environment)
+    wait_until_training(sweep, driver, log, step=100, runs=1)
+    assert driver.wait(timeout=600) == 2, log.read_text()
+    output = log.read_text()
+    assert f"{sweep.runs[1].name}: FAILED" in output and "already exists and is not empty" in output
+    assert f"1 of 2 runs failed: {sweep.runs[1].name}; run the same command again" in output
+    trained = sweep.runs[0]
+    assert run_status(trained.run_dir, planned_record(trained)).state == "done"
+    starts = [e for e in read_attempts(trained.run_dir) if e["event"] == "start"]
+    assert [e["node_id"] for e in starts] == [cluster.head_node.node_id]  # not a Ray of its own
+    results = (sweep_dir / "report" / "results.md").read_text()
+    assert trained.name in results and sweep.runs[1].name not in results
+    assert (blocked / "notes.txt").read_text() == "not a run"  # untouched
+
+
+def test_ray_client_address_joins_the_running_loopback_cluster(
+    tmp_path: Path,
+    running_cluster,  # noqa: ANN001
 ) -> None:
     cluster, client_port, environment = running_cluster
-    if address == "ray://":
-        address = f"ray://127.0.0.1:{client_port}"
+    address = f"ray://127.0.0.1:{client_port}"
     sweep_dir, log = tmp_path / "sweep", tmp_path / "driver.log"
     driver = start_driver(
         sweep_command(sweep_dir, "--address", address, vary="discount=0.9"), log, environment
@@ -159,4 +187,4 @@ def test_a_running_loopback_cluster_is_joined_on_loopback(
     (run,) = sweep.runs
     assert run_status(run.run_dir, planned_record(run)).state == "done"
     starts = [e for e in read_attempts(run.run_dir) if e["event"] == "start"]
-    assert [e["node_id"] for e in starts] == [cluster.head_node.node_id]  # not a Ray of its own
+    assert [e["node_id"] for e in starts] == [cluster.head_node.node_id]
