@@ -162,3 +162,28 @@ def test_a_killed_driver_run_again_carries_on(tmp_path: Path, ray_cluster, train
     for run in sweep.runs:
         config_path = sweep_dir / "logs" / f"{run.name}.toml"
         assert_same_run(trained_alone(config_path, "CartPole-v1"), run.run_dir)
+
+
+def test_gpu_fractions_share_a_gpu_and_whole_gpus_do_not(tmp_path: Path, ray_cluster) -> None:  # noqa: ANN001
+    """A node declaring one GPU (Ray's GPUs are counted, not probed; the runs train on the
+    CPU): runs asking 0.5 GPU train on it two at a time, runs asking 1 GPU one at a time,
+    and none goes to the nodes without a GPU."""
+    gpu_node = ray_cluster.add_node(
+        node_ip_address="127.0.0.1", num_cpus=2, num_gpus=1, memory=2 * NODE_MEMORY
+    )
+    try:
+        for gpus, overlapping in ((0.5, True), (1.0, False)):
+            sweep = plan_grid(
+                ["CartPole-v1"], [parse_variation("discount=0.9,0.99")], preset=None,
+                overrides=SETTINGS, seeds=1, first_seed=0, steps=600,
+                sweep_dir=tmp_path / f"gpus-{gpus}",
+            )  # fmt: skip
+            resources = RunResources(cpus=1, gpus=gpus, memory_bytes=RUN_MEMORY)
+            run_sweep_on_ray(sweep, resources, device="cpu", echo=lambda _: None, poll_seconds=0.2)
+            assert [run.status for run in sweep.runs] == ["ok", "ok"]
+            intervals = attempts_by_node(sweep)
+            assert list(intervals) == [gpu_node.node_id]
+            (first, first_end), (second, _) = sorted(intervals[gpu_node.node_id])
+            assert (second < first_end) == overlapping, (gpus, intervals)
+    finally:
+        ray_cluster.remove_node(gpu_node)
