@@ -173,3 +173,38 @@ def test_a_runs_subprocess_unblocks_the_stop_signals_its_ray_worker_blocks() -> 
     both = (1 << (signal.SIGINT - 1)) | (1 << (signal.SIGTERM - 1))
     assert blocked("print(open('/proc/self/status').read())") & both  # inherited, as from Ray
     assert blocked(probe) & both == 0
+
+
+def test_a_runs_subprocess_stops_itself_once_when_its_worker_dies(tmp_path: Path) -> None:
+    """The preamble's watcher: the parent (a stand-in for the Ray worker) exits, and the run
+    gets one SIGTERM, not one per exiting thread as PR_SET_PDEATHSIG gave (a second stop
+    request means "stop at once", before the checkpoint)."""
+    import subprocess
+    import sys
+    import time
+
+    from dqnlab.tools.sweep import _DIE_WITH_PARENT, PARENT_POLL_SECONDS
+
+    preamble = _DIE_WITH_PARENT.split("sys.argv[0] = ")[0]
+    record = tmp_path / "signals.txt"
+    run = preamble + (
+        "import signal, time\n"
+        f"signal.signal(signal.SIGTERM, lambda *_: open({str(record)!r}, 'a').write('TERM\\n'))\n"
+        "open(" + repr(str(record)) + ", 'a').write('started\\n')\n"
+        "time.sleep(3)\n"
+    )
+    worker = (
+        "import os, subprocess, sys, threading, time\n"
+        "def start():\n"
+        f"    subprocess.Popen([sys.executable, '-c', {run!r}, str(os.getpid())])\n"
+        "thread = threading.Thread(target=start)\n"  # started from a thread, as in a worker
+        "thread.start(); thread.join(); time.sleep(1.0)\n"
+    )
+    subprocess.run([sys.executable, "-c", worker], check=True, timeout=30)
+    deadline = time.monotonic() + 4 + 2 * PARENT_POLL_SECONDS
+    while time.monotonic() < deadline and "TERM" not in (
+        record.read_text() if record.exists() else ""
+    ):
+        time.sleep(0.1)
+    time.sleep(1.5)  # a second signal would come now
+    assert record.read_text().split() == ["started", "TERM"]

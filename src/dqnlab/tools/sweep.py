@@ -371,21 +371,27 @@ def check_resources(resources: RunResources, nodes: list[dict[str, float]]) -> N
 # kill, `_DIE_WITH_PARENT`'s SIGTERM reaches it and it checkpoints and stops.
 WORKER_ENVIRONMENT = {"RAY_kill_child_processes_on_worker_exit": "0"}
 
-# Run first in the subprocess: it gets SIGTERM when the worker that started it dies (a
-# lost node, a killed Ray), checkpoints and stops, instead of training on unowned. It
-# unblocks SIGINT and SIGTERM: a Ray worker's threads block SIGINT, a child inherits the
-# mask (measured with Ray 2.60: SigBlk 0x2 in /proc/PID/status), and a blocked SIGINT
-# never reaches the training loop's stop handler, so a Ctrl-C'd sweep trained on.
+# Run first in the subprocess. It sends itself one SIGTERM when the worker that started it
+# dies (a lost node, a killed Ray), so that it checkpoints and stops instead of training on
+# unowned. One: `dqnlab train` takes a second stop request as "stop at once", and
+# PR_SET_PDEATHSIG, tried first, fires each time a thread the child is reparented to exits
+# (measured with strace on a lost node: two or three SIGTERMs from the dying worker, the
+# second one often before the stop checkpoint was written). Hence a thread watching the
+# parent's pid. It also unblocks SIGINT and SIGTERM: a Ray worker's threads block SIGINT, a
+# child inherits the mask (measured with Ray 2.60: SigBlk 0x2 in /proc/PID/status), and a
+# blocked SIGINT never reaches the training loop's stop handler.
+PARENT_POLL_SECONDS = 0.5
 _DIE_WITH_PARENT = (
-    "import ctypes, os, signal, sys\n"
+    "import os, signal, sys, threading, time\n"
     "signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT, signal.SIGTERM})\n"
     "parent = int(sys.argv.pop(1))\n"
-    "try:\n"
-    "    ctypes.CDLL('libc.so.6').prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG\n"
-    "except (OSError, AttributeError):\n"
-    "    pass\n"
     "if os.getppid() != parent:\n"
     "    sys.exit(143)\n"
+    "def stop_when_orphaned():\n"
+    "    while os.getppid() == parent:\n"
+    f"        time.sleep({PARENT_POLL_SECONDS})\n"
+    "    os.kill(os.getpid(), signal.SIGTERM)\n"
+    "threading.Thread(target=stop_when_orphaned, daemon=True).start()\n"
     "sys.argv[0] = 'dqnlab'\n"
     "from dqnlab.cli import main\n"
     "main()\n"
