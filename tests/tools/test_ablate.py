@@ -88,6 +88,7 @@ def test_plan_refuses_bad_grids_before_anything_runs(tmp_path: Path) -> None:
     assert not (tmp_path / "s").exists()
 
 
+@pytest.mark.slow  # three sweeps, about a minute: CI keeps the cheaper one below
 def test_sweep_trains_each_run_then_skips_finished_ones(tmp_path: Path, ray_cluster) -> None:
     sweep_dir = tmp_path / "sweep"
     variation = parse_variation("life_loss_terminal=true,false")
@@ -139,6 +140,7 @@ def test_a_failed_run_does_not_stop_the_others(tmp_path: Path, ray_cluster) -> N
     lines: list[str] = []
     run_sweep(sweep, jobs=1, device="cpu", echo=lines.append, poll_seconds=0.1)
     assert [run.status for run in sweep.runs] == ["failed", "ok"]
+    assert non_loopback_sockets() == []  # Ray and the run talked on 127.0.0.1 only
     assert [run.name for run in sweep.failed] == ["discount=0.9-s0"]
     assert any("FAILED" in line and "already exists and is not empty" in line for line in lines)
 
