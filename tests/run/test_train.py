@@ -6,6 +6,7 @@ import csv
 import math
 from pathlib import Path
 
+import pytest
 import torch
 
 from dqnlab.algorithm.agent import Agent
@@ -131,3 +132,23 @@ def test_replay_frames_on_the_device_train_and_resume_the_same(tmp_path: Path) -
     assert not same(host, weights("short", "host", [450]))  # the last steps change them
     assert same(host, weights("device", "device", [600]))
     assert same(host, weights("resumed", "device", [300, 600]))
+
+
+def test_a_stop_request_delivered_twice_is_one_request(monkeypatch) -> None:  # noqa: ANN001
+    """SIGTERM to a process group that a parent also forwards (`timeout make train`) arrives
+    twice at once: still a stop after a checkpoint; a second request a second later stops
+    at once."""
+    import os
+    import signal
+
+    from dqnlab.run.train import StopRequests
+
+    clock = [100.0]
+    monkeypatch.setattr("dqnlab.run.train.time.monotonic", lambda: clock[0])
+    with StopRequests() as requests:
+        os.kill(os.getpid(), signal.SIGTERM)
+        os.kill(os.getpid(), signal.SIGTERM)
+        assert requests.signal_name == "SIGTERM"
+        clock[0] += StopRequests.SAME_REQUEST_SECONDS
+        with pytest.raises(KeyboardInterrupt):
+            os.kill(os.getpid(), signal.SIGINT)

@@ -67,16 +67,23 @@ class RunProgress:
 
 class StopRequests:
     """SIGINT/SIGTERM ask the loop to finish its step, checkpoint and stop; a second one
-    stops at once."""
+    stops at once, unless it comes within SAME_REQUEST_SECONDS of the first: one request
+    delivered twice (a signal to the process group that a parent also forwards, as
+    `timeout`, make and batch schedulers do), not a user insisting."""
+
+    SAME_REQUEST_SECONDS = 1.0
 
     def __init__(self) -> None:
         self.signal_name: str | None = None
+        self._requested_at = 0.0
         self._previous: dict[int, Any] = {}
 
     def _handle(self, number: int, frame: Any) -> None:
-        if self.signal_name is not None:
+        now = time.monotonic()
+        if self.signal_name is None:
+            self.signal_name, self._requested_at = signal.Signals(number).name, now
+        elif now - self._requested_at >= self.SAME_REQUEST_SECONDS:
             raise KeyboardInterrupt
-        self.signal_name = signal.Signals(number).name
 
     def __enter__(self) -> StopRequests:
         if threading.current_thread() is threading.main_thread():
