@@ -28,7 +28,8 @@ test: install-test
 	$(BIN)/mypy src
 	$(BIN)/python -m pytest -q
 
-# Learning tests (minutes): the classic preset solves CartPole-v1 for 3 seeds.
+# Slow tests (minutes): the classic preset solves CartPole-v1 for 3 seeds; the sweep on
+# Ray clusters on 127.0.0.1 (lost node, killed driver, Ctrl-C, auto and ray://).
 test-slow: install-test
 	$(BIN)/python -m pytest -q -m slow
 
