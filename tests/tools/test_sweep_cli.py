@@ -97,7 +97,7 @@ def test_ctrl_c_of_a_local_sweep_stops_its_runs_at_a_checkpoint_and_the_command_
     assert driver.wait(timeout=300) == STOPPED_EXIT_STATUS, log.read_text()
     output = log.read_text()
     assert "Run the same command again to carry on" in output, output
-    gone, alive = psutil.wait_procs(processes, timeout=30)
+    _, alive = psutil.wait_procs(processes, timeout=30)
     assert alive == [], [process.info for process in alive]  # the local Ray stopped too
     for run in sweep.runs:
         status = run_status(run.run_dir, planned_record(run))
