@@ -77,6 +77,62 @@ class Config:
     rmsprop_decay: float = _setting(0.95, "RMSProp moving-average decay")
     rmsprop_epsilon: float = _setting(0.01, "RMSProp epsilon (inside the sqrt for DeepMind's)")
     adam_epsilon: float = _setting(0.00015, "Adam epsilon")
+    # The update's parts (the DQN family). Every default is the Nature DQN's.
+    target: str = _setting(
+        "max",
+        "Next action of the TD target: max (the target network picks and values it; Nature) "
+        "or double (the online network picks, the target network values; van Hasselt et al. "
+        "2016)",
+    )
+    n_step: int = _setting(
+        1,
+        "Rewards summed in one TD target before bootstrapping (Rainbow: 3), cut at terminals "
+        "(lost lives too with life_loss_terminal), bootstrapped at time-limit truncation",
+    )
+    distributional: str = _setting(
+        "none", "none (one Q-value per action) or c51 (Bellemare et al. 2017: a categorical "
+        "return distribution on distributional_atoms atoms, cross-entropy loss)"
+    )  # fmt: skip
+    distributional_atoms: int = _setting(51, "Atoms of the C51 support")
+    distributional_v_min: float = _setting(-10.0, "Lowest atom of the C51 support (return)")
+    distributional_v_max: float = _setting(10.0, "Highest atom of the C51 support (return)")
+    loss: str = _setting(
+        "auto",
+        "auto: the TD loss (Huber at td_error_clip), or the cross-entropy with distributional "
+        "= c51; module:Class: your own loss part (docs: your own variant)",
+    )
+    dueling: bool = _setting(
+        False,
+        "Dueling head (Wang et al. 2016): value and mean-subtracted advantage streams, the "
+        "gradient into the torso scaled by 1/sqrt(2)",
+    )
+    noisy: bool = _setting(
+        False,
+        "Factorised Gaussian noisy linear layers in the head (Fortunato et al. 2018), fresh "
+        "noise for every action and every update; the mean weights when evaluating",
+    )
+    noisy_sigma0: float = _setting(
+        0.5, "Initial noise scale sigma_0 of noisy layers (sigma = sigma_0 / sqrt(fan in))"
+    )
+    torso: str = _setting(
+        "auto",
+        "auto: the torso of the network setting (the Nature CNN's convolutions, the MLP's "
+        "hidden layers); module:factory(input_shape) -> module giving (batch, features): the "
+        "head of the other settings goes on it",
+    )
+    replay_sampling: str = _setting(
+        "uniform",
+        "uniform, or prioritized (Schaul et al. 2016, proportional: P(i) ~ (|error| + "
+        "priority_epsilon)^priority_exponent, importance weights (N P(i))^-beta / batch max)",
+    )
+    priority_exponent: float = _setting(0.6, "Prioritized replay's alpha")
+    priority_epsilon: float = _setting(1e-6, "Added to |error| so that no priority is zero")
+    importance_exponent_start: float = _setting(
+        0.4, "Prioritized replay's beta at the first update, annealed linearly to 1 at total_steps"
+    )
+    max_gradient_norm: float = _setting(
+        0.0, "Gradients rescaled to this global L2 norm when above it (0: off; dueling: 10)"
+    )
     # Exploration.
     epsilon_start: float = _setting(1.0, "Epsilon at the end of the replay-start phase")
     epsilon_end: float = _setting(0.1, "Epsilon after the anneal")
@@ -147,6 +203,7 @@ class Config:
 
 
 FIELD_NAMES = tuple(f.name for f in dataclasses.fields(Config))
+_DEFAULTS = {f.name: f.default for f in dataclasses.fields(Config)}
 WANDB_PROJECT_FORBIDDEN = tuple("/\\#?%:")  # as wandb's Settings.validate_project
 # The accepted values of each setting that takes one of a few names; modules that
 # dispatch on a setting read its list here.
@@ -162,7 +219,12 @@ CHOICES: dict[str, tuple[str, ...]] = {
     "replay_storage": ("auto", "host", "device"),
     "replay_compression": ("none", "lz4"),
     "logger": ("tensorboard", "tensorboard+wandb"),
+    "target": ("max", "double"),
+    "distributional": ("none", "c51"),
+    "replay_sampling": ("uniform", "prioritized"),
 }
+# Settings that take one of `CHOICES` or the `module:Name` of a user's own part.
+USER_PARTS: dict[str, tuple[str, ...]] = {"loss": ("auto",), "torso": ("auto",)}
 
 
 def _validate(config: Config) -> None:
@@ -170,8 +232,14 @@ def _validate(config: Config) -> None:
         value = getattr(config, name)
         if value not in choices:
             raise ConfigError(f"{name} = {value!r} is not one of: {', '.join(choices)}")
+    for name, choices in USER_PARTS.items():
+        value = getattr(config, name)
+        if value not in choices and not _is_import_path(value):
+            raise ConfigError(
+                f"{name} = {value!r} is not one of: {', '.join(choices)}, or module:Name"
+            )
     positive = (
-        "action_repeat_frames", "screen_size", "history_length", "replay_capacity",
+        "n_step", "noisy_sigma0", "action_repeat_frames", "screen_size", "history_length", "replay_capacity",
         "batch_size", "update_period_steps", "target_update_steps", "learning_rate",
         "eval_period_steps", "eval_steps", "final_eval_episodes", "total_steps",
         "replay_start_steps", "rmsprop_epsilon", "adam_epsilon", "checkpoints_kept",
@@ -183,13 +251,14 @@ def _validate(config: Config) -> None:
     non_negative = (
         "seed", "noop_max_frames", "max_episode_frames", "reward_clip", "td_error_clip",
         "epsilon_decay_steps", "eval_max_episode_frames", "final_eval_max_episode_frames",
-        "checkpoint_period_steps", "heldout_transitions",
+        "checkpoint_period_steps", "heldout_transitions", "priority_epsilon",
+        "priority_exponent", "max_gradient_norm",
     )  # fmt: skip
     for name in non_negative:
         if getattr(config, name) < 0:
             raise ConfigError(f"{name} = {getattr(config, name)} must be zero or more")
     unit_interval = (
-        "sticky_action_probability", "discount", "epsilon_start", "epsilon_end", "eval_epsilon",
+        "importance_exponent_start", "sticky_action_probability", "discount", "epsilon_start", "epsilon_end", "eval_epsilon",
     )  # fmt: skip
     for name in unit_interval:
         if not 0.0 <= getattr(config, name) <= 1.0:
@@ -200,6 +269,7 @@ def _validate(config: Config) -> None:
         raise ConfigError(
             f"batch_size = {config.batch_size} exceeds replay_capacity = {config.replay_capacity}"
         )
+    _validate_parts(config)
     if any(width <= 0 for width in config.mlp_hidden_sizes):
         raise ConfigError(f"mlp_hidden_sizes = {list(config.mlp_hidden_sizes)} must be positive")
     # W&B would refuse such a project name, but only once the run has started.
@@ -208,6 +278,38 @@ def _validate(config: Config) -> None:
         raise ConfigError(
             f"wandb_project = {project!r} must be 1 to 128 characters, none of "
             f"{' '.join(WANDB_PROJECT_FORBIDDEN)}"
+        )
+
+
+def _is_import_path(value: str) -> bool:
+    module, sep, name = value.partition(":")
+    return bool(sep and module and name)
+
+
+def _validate_parts(config: Config) -> None:
+    """Combinations of the update's parts that cannot work, refused before anything is built."""
+    if config.distributional != "none":
+        if config.distributional_atoms < 2:
+            raise ConfigError(
+                f"distributional_atoms = {config.distributional_atoms} must be at least 2"
+            )
+        if not config.distributional_v_min < config.distributional_v_max:
+            raise ConfigError(
+                f"distributional_v_min = {config.distributional_v_min} must be below "
+                f"distributional_v_max = {config.distributional_v_max}"
+            )
+    heads = [name for name in ("dueling", "noisy") if getattr(config, name)]
+    if config.distributional != "none":
+        heads.append("distributional")
+    if config.torso != "auto" and config.network != "auto":
+        raise ConfigError(
+            f"torso = {config.torso!r} replaces the network's torso: leave network = 'auto' "
+            f"(it is {config.network!r})"
+        )
+    if ":" in config.network and heads:
+        raise ConfigError(
+            f"network = {config.network!r} is a whole Q-network, so {', '.join(heads)} cannot "
+            "be added to it; give your torso as torso = module:factory instead"
         )
 
 
@@ -220,10 +322,26 @@ RESUMABLE_CHANGES = (
 )  # fmt: skip
 
 
+# Settings added after runs were first checkpointed (the DQN family's parts): left out of a
+# fingerprint while they hold their default, so a run checkpointed before they existed
+# resumes under this version.
+ADDED_WITH_DEFAULTS = (
+    "target", "n_step", "distributional", "distributional_atoms", "distributional_v_min",
+    "distributional_v_max", "loss", "dueling", "noisy", "noisy_sigma0", "torso",
+    "replay_sampling", "priority_exponent", "priority_epsilon", "importance_exponent_start",
+    "max_gradient_norm",
+)  # fmt: skip
+
+
 def config_fingerprint(config: Config) -> str:
     """What a checkpoint must match to be resumed: SHA-256 of the canonical JSON of every
-    setting but `RESUMABLE_CHANGES`. Equal settings, equal fingerprints."""
-    values = {k: v for k, v in config.to_dict().items() if k not in RESUMABLE_CHANGES}
+    setting but `RESUMABLE_CHANGES` (and `ADDED_WITH_DEFAULTS` at their defaults). Equal
+    settings, equal fingerprints."""
+    values = {
+        k: v
+        for k, v in config.to_dict().items()
+        if k not in RESUMABLE_CHANGES and not (k in ADDED_WITH_DEFAULTS and v == _DEFAULTS[k])
+    }
     canonical = json.dumps(values, sort_keys=True, separators=(",", ":"), ensure_ascii=True)
     return hashlib.sha256(canonical.encode()).hexdigest()
 
