@@ -239,9 +239,9 @@ def _validate(config: Config) -> None:
                 f"{name} = {value!r} is not one of: {', '.join(choices)}, or module:Name"
             )
     positive = (
-        "n_step", "noisy_sigma0", "action_repeat_frames", "screen_size", "history_length", "replay_capacity",
-        "batch_size", "update_period_steps", "target_update_steps", "learning_rate",
-        "eval_period_steps", "eval_steps", "final_eval_episodes", "total_steps",
+        "n_step", "noisy_sigma0", "action_repeat_frames", "screen_size", "history_length",
+        "replay_capacity", "batch_size", "update_period_steps", "target_update_steps",
+        "learning_rate", "eval_period_steps", "eval_steps", "final_eval_episodes", "total_steps",
         "replay_start_steps", "rmsprop_epsilon", "adam_epsilon", "checkpoints_kept",
         "checkpoint_period_minutes",
     )  # fmt: skip
@@ -258,7 +258,8 @@ def _validate(config: Config) -> None:
         if getattr(config, name) < 0:
             raise ConfigError(f"{name} = {getattr(config, name)} must be zero or more")
     unit_interval = (
-        "importance_exponent_start", "sticky_action_probability", "discount", "epsilon_start", "epsilon_end", "eval_epsilon",
+        "importance_exponent_start", "sticky_action_probability", "discount", "epsilon_start",
+        "epsilon_end", "eval_epsilon",
     )  # fmt: skip
     for name in unit_interval:
         if not 0.0 <= getattr(config, name) <= 1.0:

@@ -11,9 +11,13 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from dqnlab.algorithm.agent import Agent, epsilon_at, td_loss
+from dqnlab.algorithm.agent import Agent, epsilon_at
+from dqnlab.algorithm.losses import TDLoss, Transitions
 from dqnlab.algorithm.networks import NatureCNN
 from dqnlab.algorithm.replay import Batch
+from dqnlab.config import resolve_config
+
+_NATURE = resolve_config("nature", env="pong")
 
 
 def test_epsilon_schedule_of_the_nature_preset(nature) -> None:
@@ -23,6 +27,16 @@ def test_epsilon_schedule_of_the_nature_preset(nature) -> None:
     assert epsilon_at(550_000, nature) == pytest.approx(0.55)  # half way: 1 - 0.9/2
     assert epsilon_at(1_050_000, nature) == pytest.approx(0.1)
     assert epsilon_at(40_000_000, nature) == pytest.approx(0.1)
+
+
+def td_loss(online, target, observations, actions, rewards, terminals, next_observations,
+            discount, td_error_clip, reduction) -> torch.Tensor:  # fmt: skip
+    """The TD loss part's per-transition losses, reduced as the agent reduces them."""
+    config = dataclasses.replace(_NATURE, td_error_clip=td_error_clip)
+    batch = Transitions(observations, actions, rewards, terminals,
+                        torch.full_like(rewards, discount), next_observations)  # fmt: skip
+    losses = TDLoss(config)(online, target, batch).losses
+    return losses.sum() if reduction == "sum" else losses.mean()
 
 
 class Linear1(nn.Module):
@@ -160,8 +174,9 @@ def test_update_matches_a_plain_reference_implementation(
     expected = _reference_updates(network, _random_batches(4, seed=5), nature, steps=4)
     agent = Agent(network, 6, nature, torch.device("cpu"), seed=0, compile_update=compile_update)
     for batch in _random_batches(4, seed=5, shared_window=shared_window):
-        loss = agent.update(batch)
+        loss, priorities = agent.update(batch)
     assert loss.shape == () and not loss.requires_grad
+    assert priorities is not None and priorities.shape == (32,)
     assert agent.updates == 4
     for actual, reference in zip(agent.online.parameters(), expected, strict=True):
         torch.testing.assert_close(actual.double(), reference, rtol=1e-5, atol=1e-8)

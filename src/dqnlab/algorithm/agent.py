@@ -1,4 +1,12 @@
-"""The DQN agent: epsilon-greedy acting, the Q-learning update and the target network."""
+"""The DQN agent: acting, the update and the target network.
+
+One update for every member of the family: the loss part (`losses.build_loss`: the TD loss
+of Nature and Double DQN, C51's cross-entropy, or a user's own) gives a loss and a priority
+per transition; the agent weights them (prioritized replay's importance weights), reduces
+them (`loss_reduction`), back-propagates, clips the gradient norm (`max_gradient_norm`) and
+steps the optimizer. Networks with noisy layers get fresh noise from the agent's own
+generator for every action in training and for both networks at every update.
+"""
 
 from __future__ import annotations
 
@@ -8,10 +16,10 @@ from typing import Any
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 from torch import nn
 
-from dqnlab.algorithm.networks import build_network
+from dqnlab.algorithm.losses import Transitions, build_loss
+from dqnlab.algorithm.networks import build_network, has_noise, sample_noise
 from dqnlab.algorithm.optim import build_optimizer
 from dqnlab.algorithm.replay import Batch
 from dqnlab.config import Config
@@ -31,36 +39,8 @@ def epsilon_at(step: int, config: Config) -> float:
     return config.epsilon_start + (config.epsilon_end - config.epsilon_start) * progress
 
 
-def td_loss(
-    online: nn.Module,
-    target: nn.Module,
-    observations: torch.Tensor,
-    actions: torch.Tensor,
-    rewards: torch.Tensor,
-    terminals: torch.Tensor,
-    next_observations: torch.Tensor,
-    discount: float,
-    td_error_clip: float,
-    reduction: str,
-) -> torch.Tensor:
-    """Q-learning loss of one minibatch.
-
-    The Huber loss with threshold `td_error_clip` has the clipped TD error as its gradient,
-    which is exactly the Lua code's clip_delta; summed over the batch as the Lua code
-    accumulates gradients (its RMSProp epsilon assumes that scale).
-    """
-    q_taken = online(observations).gather(1, actions.unsqueeze(1)).squeeze(1)
-    with torch.no_grad():
-        next_q = target(next_observations).max(dim=1).values
-        q_target = rewards + discount * (1.0 - terminals) * next_q
-    if td_error_clip > 0:
-        return F.huber_loss(q_taken, q_target, delta=td_error_clip, reduction=reduction)
-    squared = 0.5 * (q_target - q_taken) ** 2
-    return squared.sum() if reduction == "sum" else squared.mean()
-
-
 class Agent:
-    """Owns the online and target networks and the optimizer; acts and learns."""
+    """Owns the online and target networks, the optimizer and the loss part; acts and learns."""
 
     def __init__(
         self,
@@ -95,7 +75,13 @@ class Agent:
             rmsprop_epsilon=config.rmsprop_epsilon,
             adam_epsilon=config.adam_epsilon,
         )
+        self.loss = build_loss(config)
         self.rng = np.random.default_rng(seed)
+        # Noisy layers draw from a generator of their own (on the device), saved with the
+        # agent so that a resumed run draws the same noise.
+        self.noisy = has_noise(self.online)
+        self.noise_generator = torch.Generator(device=device)
+        self.noise_generator.manual_seed(seed)
         self.updates = 0
         self.input_shape = tuple(input_shape) if input_shape is not None else None
         self.observation_dtype = (
@@ -107,8 +93,13 @@ class Agent:
             self._loss_and_backward = torch.compile(self._loss_and_backward)  # type: ignore[method-assign]
             self._optimizer_step = torch.compile(self.optimizer.step)
 
-    def act(self, stacked_observation: np.ndarray, epsilon: float) -> int:
-        """Epsilon-greedy on one stacked observation (`epsilon_greedy`)."""
+    def act(self, stacked_observation: np.ndarray, epsilon: float, training: bool = False) -> int:
+        """Epsilon-greedy on one stacked observation (`epsilon_greedy`). In `training`, a
+        network with noisy layers acts with fresh noise; otherwise with its mean weights."""
+        if training and self.noisy:
+            return self.epsilon_greedy(
+                epsilon, lambda: self._noisy_q_values(stacked_observation[None])[0]
+            )
         return self.epsilon_greedy(epsilon, lambda: self.q_values(stacked_observation[None])[0])
 
     def epsilon_greedy(
@@ -125,14 +116,23 @@ class Agent:
         return int(best[0] if len(best) == 1 else self.rng.choice(best))
 
     def q_values(self, stacked_observations: np.ndarray) -> np.ndarray:
-        """Q-values of the online network in eval mode (matters for dropout/batch norm)."""
+        """Q-values of the online network in eval mode (matters for dropout/batch norm, and
+        gives noisy layers their mean weights)."""
         self.online.eval()
         with torch.inference_mode():
             inputs = torch.from_numpy(stacked_observations).to(self.device)
             return self.online(inputs).float().cpu().numpy()
 
-    def update(self, batch: Batch) -> torch.Tensor:
-        """One gradient step on a sampled minibatch; returns the loss (not synchronised)."""
+    def _noisy_q_values(self, stacked_observations: np.ndarray) -> np.ndarray:
+        self.online.train()
+        sample_noise(self.online, self.noise_generator)
+        with torch.inference_mode():
+            inputs = torch.from_numpy(stacked_observations).to(self.device)
+            return self.online(inputs).float().cpu().numpy()
+
+    def update(self, batch: Batch) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """One gradient step on a sampled minibatch; returns the loss and the priorities
+        the loss part gives (for prioritized replay), neither synchronised."""
         device = self.device
         self.online.train()
         # Zeroed in place, not set to None: fresh gradients every update made the C
@@ -146,16 +146,25 @@ class Agent:
         else:
             observations = _on_device(batch.observations, device)
             next_observations = _on_device(batch.next_observations, device)
-        loss = self._loss_and_backward(
+        if self.noisy:  # fresh noise for each network (Fortunato et al. 2018, Algorithm 1)
+            self.target.train()
+            sample_noise(self.online, self.noise_generator)
+            sample_noise(self.target, self.noise_generator)
+        discounts, weights = batch.discounts, batch.weights
+        loss, priorities = self._loss_and_backward(
             observations,
             torch.from_numpy(batch.actions).to(device),
             torch.from_numpy(batch.rewards).to(device),
             torch.from_numpy(batch.terminals).to(device),
+            None if discounts is None else torch.from_numpy(discounts).to(device),
             next_observations,
+            None if weights is None else torch.from_numpy(weights).to(device),
         )
+        if self.config.max_gradient_norm > 0:
+            nn.utils.clip_grad_norm_(self.online.parameters(), self.config.max_gradient_norm)
         self._optimizer_step()
         self.updates += 1
-        return loss
+        return loss, priorities
 
     def _loss_and_backward(
         self,
@@ -163,22 +172,23 @@ class Agent:
         actions: torch.Tensor,
         rewards: torch.Tensor,
         terminals: torch.Tensor,
+        discounts: torch.Tensor | None,
         next_observations: torch.Tensor,
-    ) -> torch.Tensor:
-        loss = td_loss(
+        weights: torch.Tensor | None,
+    ) -> tuple[torch.Tensor, torch.Tensor | None]:
+        if discounts is None:  # one-step targets: the discount itself
+            discounts = torch.full_like(rewards, self.config.discount)
+        output = self.loss(
             self.online,
             self.target,
-            observations,
-            actions,
-            rewards,
-            terminals,
-            next_observations,
-            self.config.discount,
-            self.config.td_error_clip,
-            self.config.loss_reduction,
+            Transitions(observations, actions, rewards, terminals, discounts, next_observations),
         )
+        losses = output.losses if weights is None else output.losses * weights
+        # Summed as the Lua code accumulates gradients over the minibatch (its RMSProp
+        # epsilon assumes that scale), or averaged (loss_reduction).
+        loss = losses.sum() if self.config.loss_reduction == "sum" else losses.mean()
         loss.backward()
-        return loss.detach()
+        return loss.detach(), output.priorities
 
     def sync_target(self) -> None:
         self.target.load_state_dict(self.online.state_dict())
@@ -189,6 +199,7 @@ class Agent:
             "target": self.target.state_dict(),
             "optimizer": self.optimizer.state_dict(),
             "rng": self.rng.bit_generator.state,
+            "noise_rng": self.noise_generator.get_state(),
             "updates": self.updates,
         }
 
@@ -197,6 +208,8 @@ class Agent:
         self.target.load_state_dict(state["target"])
         self.optimizer.load_state_dict(state["optimizer"])
         self.rng.bit_generator.state = state["rng"]
+        if "noise_rng" in state:  # checkpoints from before the family have none
+            self.noise_generator.set_state(state["noise_rng"].cpu())
         self.updates = int(state["updates"])
 
 

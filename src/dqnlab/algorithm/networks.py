@@ -129,3 +129,11 @@ def _user_network(
             f"expected (2, {num_actions})"
         )
     return network
+
+
+def has_noise(network: nn.Module) -> bool:  # placeholder until the heads land
+    return False
+
+
+def sample_noise(network: nn.Module, generator: torch.Generator) -> None:  # placeholder
+    return None

@@ -84,6 +84,9 @@ class Batch:
     # (batch, history + 1, *frame_shape) when both are views of it (observations the first
     # `history` frames, next_observations the last): a device copies it once, not twice.
     window: np.ndarray | torch.Tensor | None = None
+    indices: np.ndarray | None = None  # (batch,) int64: the sampled slots
+    discounts: np.ndarray | None = None  # (batch,) float32: the bootstrap's discount
+    weights: np.ndarray | None = None  # (batch,) float32: importance weights (prioritized)
 
 
 class ReplayMemory:

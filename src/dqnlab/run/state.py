@@ -22,6 +22,7 @@ import torch
 from dqnlab.algorithm.agent import build_agent, epsilon_at
 from dqnlab.algorithm.compression import expected_frame_bytes
 from dqnlab.algorithm.heldout import HeldOutSet, HeldOutStatistics
+from dqnlab.algorithm.losses import importance_exponent_at
 from dqnlab.algorithm.replay import FrameHistory, ReplayMemory, check_memory
 from dqnlab.config import Config, derive_seeds
 from dqnlab.envs import make_env
@@ -110,7 +111,7 @@ class TrainingState:
         step = self.steps
         start = perf_counter()
         self.epsilon = epsilon_at(step - 1, config)
-        action = self.agent.act(self.history.frames, self.epsilon)
+        action = self.agent.act(self.history.frames, self.epsilon, training=True)
         acted = perf_counter()
         observation, reward, terminated, truncated = self.env.step(action)
         stepped = perf_counter()
@@ -147,9 +148,21 @@ class TrainingState:
                 self.replay, config.heldout_transitions, self.heldout_rng
             )
         if step > config.replay_start_steps and step % config.update_period_steps == 0:
-            batch = self.replay.sample()
+            prioritized = config.replay_sampling == "prioritized"
+            batch = (
+                self.replay.sample(importance_exponent=importance_exponent_at(step, config))
+                if prioritized
+                else self.replay.sample()
+            )
             sampled = perf_counter()
-            loss = self.agent.update(batch)
+            loss, priorities = self.agent.update(batch)
+            if prioritized:
+                if priorities is None:
+                    raise DqnlabError(
+                        f"loss = {config.loss!r} gives no priorities, which replay_sampling "
+                        '= "prioritized" needs'
+                    )
+                self.replay.update_priorities(batch.indices, priorities)
             if self.check_every_update and not torch.isfinite(loss):
                 raise TrainingDiverged(
                     f"the loss became NaN or infinite at step {step}: training stopped; the "

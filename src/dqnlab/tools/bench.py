@@ -125,7 +125,7 @@ def run_benchmark(
     timings = []
     for _ in range(update_repeats):
         start = time.perf_counter()
-        agent.update(batch).item()  # .item() waits for the device
+        agent.update(batch)[0].item()  # .item() waits for the device
         timings.append(time.perf_counter() - start)
     figures["update_ms"] = float(np.median(timings) * 1e3)
 
