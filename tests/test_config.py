@@ -86,6 +86,22 @@ def test_overrides_are_typed() -> None:
         ("rmsprop_epsilon=0", "rmsprop_epsilon = 0.0 must be positive"),
         ("replay_start_steps=0", "replay_start_steps = 0 must be positive"),
         ("mlp_hidden_sizes=[1.5]", "mlp_hidden_sizes = [1.5] is not a valid list of integers"),
+        ("n_step=0", "n_step = 0 must be positive"),
+        ("target=triple", "target = 'triple' is not one of: max, double"),
+        (
+            "replay_sampling=ranked",
+            "replay_sampling = 'ranked' is not one of: uniform, prioritized",
+        ),
+        ("distributional=qr", "distributional = 'qr' is not one of: none, c51"),
+        ("loss=huber", "loss = 'huber' is not one of: auto, or module:Name"),
+        ("torso=:f", "torso = ':f' is not one of: auto, or module:Name"),
+        ("priority_exponent=-0.5", "priority_exponent = -0.5 must be zero or more"),
+        (
+            "importance_exponent_start=1.5",
+            "importance_exponent_start = 1.5 must be between 0 and 1",
+        ),
+        ("max_gradient_norm=-1", "max_gradient_norm = -1.0 must be zero or more"),
+        ("noisy_sigma0=0", "noisy_sigma0 = 0.0 must be positive"),
     ],
 )
 def test_bad_values_say_what_is_wrong(pair: str, message: str) -> None:
@@ -154,3 +170,27 @@ def test_where_a_run_logs_is_checked_and_outside_its_fingerprint() -> None:
         with pytest.raises(ConfigError) as error:
             resolve_config("nature", parse_overrides([pair]), env="pong")
         assert message in str(error.value)
+
+
+@pytest.mark.parametrize(
+    ("pairs", "message"),
+    [
+        (["distributional=c51", "distributional_atoms=1"], "distributional_atoms = 1 must be at"),
+        (["distributional=c51", "distributional_v_min=10"], "distributional_v_min = 10.0 must be"),
+        (["network=my.nets:q", "dueling=true"], "whole Q-network, so dueling cannot be added"),
+        (["network=my.nets:q", "distributional=c51"], "so distributional cannot be added"),
+        (["network=mlp", "torso=my.nets:torso"], "torso = 'my.nets:torso' replaces the network"),
+    ],
+)
+def test_combinations_of_parts_that_cannot_work_name_the_setting(pairs, message) -> None:
+    with pytest.raises(ConfigError) as error:
+        resolve_config("nature", parse_overrides(pairs), env="pong")
+    assert message in str(error.value) and "\n" not in str(error.value)
+
+
+def test_the_familys_settings_at_their_defaults_leave_the_fingerprint_as_before() -> None:
+    # The fingerprint of the nature preset on Pong before the family's settings existed
+    # (commit 77fcc14): a run checkpointed then resumes under this version.
+    assert config_fingerprint(resolve_config("nature", env="pong")).startswith("0ec1391b4c39d2a6")
+    changed = resolve_config("nature", parse_overrides(["n_step=3"]), env="pong")
+    assert config_fingerprint(changed) != config_fingerprint(resolve_config("nature", env="pong"))
