@@ -40,6 +40,14 @@ CARTPOLE = [
     "--set", "replay_capacity=2000",
     "--no-progress", "--device", "cpu",
 ]  # fmt: skip
+# Every part of the family at once, as Rainbow composes them: priorities, the noise
+# generator and n-step windows must come back exactly too.
+RAINBOW_CARTPOLE = [
+    *CARTPOLE, "--set", "target=double", "--set", "dueling=true", "--set", "noisy=true",
+    "--set", "distributional=c51", "--set", "n_step=3", "--set", "replay_sampling=prioritized",
+    "--set", "optimizer=adam", "--set", "learning_rate=0.0005", "--set", "loss_reduction=mean",
+    "--set", "max_gradient_norm=10", "--set", "epsilon_start=0", "--set", "epsilon_end=0",
+]  # fmt: skip
 PONG = [
     "--env", "pong", "--steps", "700", "--seed", "3",
     "--set", "replay_start_steps=150", "--set", "replay_capacity=500",
@@ -147,7 +155,9 @@ def assert_same_run(reference: Path, resumed: Path) -> None:
         assert steps == sorted(steps) and len(steps) == len(set(steps)), tag  # no duplicates
 
 
-@pytest.mark.parametrize("args", [CARTPOLE, PONG], ids=["cartpole", "pong"])
+@pytest.mark.parametrize(
+    "args", [CARTPOLE, RAINBOW_CARTPOLE, PONG], ids=["cartpole", "rainbow-cartpole", "pong"]
+)
 def test_sigkill_at_random_moments_then_resume_is_bit_identical(tmp_path: Path, args) -> None:
     reference, resumed = tmp_path / "reference", tmp_path / "resumed"
     code, stderr = finish(dqnlab("train", *args, "--run-dir", str(reference)))
