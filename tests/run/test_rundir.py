@@ -1,4 +1,5 @@
-"""The run directory: its layout, config.toml, network files and final evaluations."""
+"""The run directory: its layout, config.toml, network files (with the family's heads too)
+and final evaluations."""
 
 from __future__ import annotations
 
@@ -10,7 +11,9 @@ import pytest
 import torch
 
 from dqnlab import envs
-from dqnlab.algorithm.agent import build_agent
+from dqnlab.algorithm.agent import agent_for_input, build_agent
+from dqnlab.algorithm.heads import has_noise, sample_noise
+from dqnlab.algorithm.networks import DistributionalQNetwork
 from dqnlab.config import resolve_config
 from dqnlab.envs import make_env
 from dqnlab.errors import DqnlabError
@@ -107,3 +110,33 @@ def test_kept_evaluation_networks_and_names(tmp_path: Path) -> None:
     assert rundir.eval_network_steps(tmp_path) == [500, 2500]
     assert rundir.default_run_dir("module:Env", "nature", 3) == Path("runs/module_Env-nature-s3")
     assert rundir.default_sweep_dir("ALE/Pong-v5", ["a", "b"]) == Path("sweeps/ALE_Pong-v5-a+b")
+
+
+@pytest.mark.parametrize(
+    ("preset", "input_shape", "dtype"),
+    [("nature", (4, 36, 36), np.uint8), ("classic", (2, 4), np.float32)],
+)
+def test_a_network_file_of_a_rainbow_head_loads_from_its_config(
+    tmp_path, preset, input_shape, dtype
+) -> None:
+    config = resolve_config(
+        preset, env="pong", dueling=True, noisy=True, distributional="c51", noisy_sigma0=0.1
+    )
+    trained = agent_for_input(config, input_shape, dtype, ["a", "b", "c"], torch.device("cpu"), 0)
+    assert isinstance(trained.online, DistributionalQNetwork) and has_noise(trained.online)
+    sample_noise(trained.online, torch.Generator().manual_seed(0))
+    with torch.no_grad():  # weights that differ from a fresh network's
+        for parameter in trained.online.parameters():
+            parameter.add_(0.01)
+    payload = rundir.network_payload(
+        config, input_shape, dtype, trained.action_names, 3, trained.online
+    )
+    assert not [key for key in payload["network"] if "epsilon" in key or "support" in key]
+    path = tmp_path / "best.pt"
+    rundir.save_network(path, payload)
+    agent, loaded_config, _ = rundir.agent_from_network(
+        rundir.load_network(path), path, seed=1, device=torch.device("cpu")
+    )
+    assert loaded_config == config and isinstance(agent.online, DistributionalQNetwork)
+    inputs = np.random.default_rng(0).integers(0, 256, (2, *input_shape)).astype(dtype)
+    assert np.array_equal(agent.q_values(inputs), trained.q_values(inputs))  # eval: the means

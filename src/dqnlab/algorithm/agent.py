@@ -18,8 +18,9 @@ import numpy as np
 import torch
 from torch import nn
 
+from dqnlab.algorithm.heads import has_noise, sample_noise
 from dqnlab.algorithm.losses import Transitions, build_loss
-from dqnlab.algorithm.networks import build_network, has_noise, sample_noise
+from dqnlab.algorithm.networks import build_q_network
 from dqnlab.algorithm.optim import build_optimizer
 from dqnlab.algorithm.replay import Batch
 from dqnlab.config import Config
@@ -241,12 +242,11 @@ def agent_for_input(
 ) -> Agent:
     """The configured network for inputs of `input_shape` (history, *observation shape)
     and one Q-value per action of `action_names`, wrapped in an agent."""
-    network = build_network(
-        config.network,
+    network = build_q_network(
+        config,
         input_shape,
         len(action_names),
         is_image_observation(input_shape[1:], observation_dtype),
-        config.mlp_hidden_sizes,
     )
     return Agent(
         network,

@@ -1,20 +1,38 @@
-"""Q-networks: the Nature CNN for images, an MLP for vectors, or a user's own factory.
+"""Q-networks: the Nature CNN for images, an MLP for vectors, a user's own network, or a
+torso with the DQN family's heads.
 
 A network takes a batch of stacked observations of shape (batch, history, *frame_shape)
 in their stored dtype (uint8 images are scaled by 1/255 inside) and returns one Q-value
-per action. A user's factory is called as `factory(input_shape, num_actions)` with
-`input_shape = (history, *frame_shape)` and must return such a `torch.nn.Module`.
+per action. `build_q_network` builds the one a configuration asks for:
+
+- with every head setting at its default (the Nature DQN) the network of `build_network`:
+  `NatureCNN`, `MLP` or the user's `network = module:factory`, built exactly as before the
+  heads existed, so that a seed gives the same parameters and older network files load;
+- otherwise a torso (`NatureTorso`, `MLPTorso`, or the user's `torso = module:factory`)
+  under a `heads.QHead`: a `QNetwork`, or with C51 a `DistributionalQNetwork`.
+
+A user's network factory is called as `factory(input_shape, num_actions)` and a torso
+factory as `factory(input_shape)`, with `input_shape = (history, *frame_shape)`; each
+returns a `torch.nn.Module`, the network giving (batch, num_actions) and the torso
+(batch, features).
 """
 
 from __future__ import annotations
 
 import importlib
+import math
 from collections.abc import Sequence
+from typing import NamedTuple
 
 import torch
+import torch.nn.functional as F
 from torch import nn
 
+from dqnlab.algorithm.heads import QHead
+from dqnlab.config import Config
 from dqnlab.errors import ConfigError
+
+NATURE_HIDDEN_WIDTH = 512  # Mnih et al. 2015, Methods: the fully connected layer's units
 
 
 class NatureCNN(nn.Module):
@@ -26,34 +44,72 @@ class NatureCNN(nn.Module):
 
     def __init__(self, input_shape: Sequence[int], num_actions: int) -> None:
         super().__init__()
-        history, *frame_shape = input_shape
-        # Images may carry channels: (history, C, H, W) becomes history*C input planes.
-        channels = history * (frame_shape[0] if len(frame_shape) == 3 else 1)
-        height, width = frame_shape[-2:]
-        self.features = nn.Sequential(
-            nn.Conv2d(channels, 32, kernel_size=8, stride=4),
+        channels, height, width = _image_planes(input_shape)
+        self.features = _nature_convolutions(channels)
+        flat = _flat_size(self.features, channels, height, width)
+        self.head = nn.Sequential(
+            nn.Linear(flat, NATURE_HIDDEN_WIDTH),
             nn.ReLU(),
-            nn.Conv2d(32, 64, kernel_size=4, stride=2),
-            nn.ReLU(),
-            nn.Conv2d(64, 64, kernel_size=3, stride=1),
-            nn.ReLU(),
-            nn.Flatten(),
+            nn.Linear(NATURE_HIDDEN_WIDTH, num_actions),
         )
-        if min(height, width) < 36:
-            raise ConfigError(
-                f"the Nature CNN needs images of at least 36x36 pixels, got {height}x{width}"
-            )
-        with torch.no_grad():
-            flat = self.features(torch.zeros(1, channels, height, width)).shape[1]
-        self.head = nn.Sequential(nn.Linear(flat, 512), nn.ReLU(), nn.Linear(512, num_actions))
         # Channels-last convolutions are about a third faster on CPU (oneDNN), same values.
         self.features.to(memory_format=torch.channels_last)
 
     def forward(self, observations: torch.Tensor) -> torch.Tensor:
-        # Channels-last planes by stacking the frames along a new last axis: twice as fast
-        # as a strided copy to channels-last, and a fresh tensor that can be scaled in place.
-        planes = torch.stack(observations.flatten(1, -3).unbind(1), dim=-1).permute(0, 3, 1, 2)
-        return self.head(self.features(planes.float().div_(255.0)))
+        return self.head(self.features(_scaled_planes(observations)))
+
+
+class NatureTorso(nn.Module):
+    """The Nature CNN's three convolutions, flattened: `output_size` features per input."""
+
+    def __init__(self, input_shape: Sequence[int]) -> None:
+        super().__init__()
+        channels, height, width = _image_planes(input_shape)
+        self.features = _nature_convolutions(channels)
+        self.output_size = _flat_size(self.features, channels, height, width)
+        self.features.to(memory_format=torch.channels_last)  # as in NatureCNN
+
+    def forward(self, observations: torch.Tensor) -> torch.Tensor:
+        return self.features(_scaled_planes(observations))
+
+
+def _image_planes(input_shape: Sequence[int]) -> tuple[int, int, int]:
+    """(input planes, height, width) of stacked images: images with channels, (history, C,
+    H, W), give history*C planes."""
+    history, *frame_shape = input_shape
+    channels = history * (frame_shape[0] if len(frame_shape) == 3 else 1)
+    height, width = frame_shape[-2:]
+    if min(height, width) < 36:
+        raise ConfigError(
+            f"the Nature CNN needs images of at least 36x36 pixels, got {height}x{width}"
+        )
+    return channels, height, width
+
+
+def _nature_convolutions(channels: int) -> nn.Sequential:
+    return nn.Sequential(
+        nn.Conv2d(channels, 32, kernel_size=8, stride=4),
+        nn.ReLU(),
+        nn.Conv2d(32, 64, kernel_size=4, stride=2),
+        nn.ReLU(),
+        nn.Conv2d(64, 64, kernel_size=3, stride=1),
+        nn.ReLU(),
+        nn.Flatten(),
+    )
+
+
+def _flat_size(convolutions: nn.Module, channels: int, height: int, width: int) -> int:
+    with torch.no_grad():
+        return int(convolutions(torch.zeros(1, channels, height, width)).shape[1])
+
+
+def _scaled_planes(observations: torch.Tensor) -> torch.Tensor:
+    """Stacked frames (batch, history, [C,] H, W) as float planes in [0, 1], channels-last.
+
+    Stacking the frames along a new last axis is twice as fast as a strided copy to
+    channels-last, and gives a fresh tensor that can be scaled in place."""
+    planes = torch.stack(observations.flatten(1, -3).unbind(1), dim=-1).permute(0, 3, 1, 2)
+    return planes.float().div_(255.0)
 
 
 class MLP(nn.Module):
@@ -63,18 +119,158 @@ class MLP(nn.Module):
         self, input_shape: Sequence[int], num_actions: int, hidden_sizes: Sequence[int]
     ) -> None:
         super().__init__()
-        inputs = 1
-        for n in input_shape:
-            inputs *= n
-        layers: list[nn.Module] = [nn.Flatten()]
-        for width in hidden_sizes:
-            layers += [nn.Linear(inputs, width), nn.ReLU()]
-            inputs = width
-        layers.append(nn.Linear(inputs, num_actions))
-        self.layers = nn.Sequential(*layers)
+        hidden, width = _hidden_layers(math.prod(input_shape), hidden_sizes)
+        self.layers = nn.Sequential(nn.Flatten(), *hidden, nn.Linear(width, num_actions))
 
     def forward(self, observations: torch.Tensor) -> torch.Tensor:
         return self.layers(observations.float())
+
+
+class MLPTorso(nn.Module):
+    """The MLP's hidden layers: `output_size` features per input (the inputs flattened when
+    `hidden_sizes` is empty)."""
+
+    def __init__(self, input_shape: Sequence[int], hidden_sizes: Sequence[int]) -> None:
+        super().__init__()
+        hidden, self.output_size = _hidden_layers(math.prod(input_shape), hidden_sizes)
+        self.layers = nn.Sequential(nn.Flatten(), *hidden)
+
+    def forward(self, observations: torch.Tensor) -> torch.Tensor:
+        return self.layers(observations.float())
+
+
+def _hidden_layers(inputs: int, widths: Sequence[int]) -> tuple[list[nn.Module], int]:
+    """Linear layers of `widths` units with ReLU, and the width of the last."""
+    layers: list[nn.Module] = []
+    for width in widths:
+        layers += [nn.Linear(inputs, width), nn.ReLU()]
+        inputs = width
+    return layers, inputs
+
+
+class QNetwork(nn.Module):
+    """A torso and a head: one Q-value per action, (batch, actions)."""
+
+    def __init__(self, torso: nn.Module, head: QHead) -> None:
+        super().__init__()
+        self.torso = torso
+        self.head = head
+
+    def forward(self, observations: torch.Tensor) -> torch.Tensor:
+        return self.head(self.torso(observations)).flatten(1)
+
+
+class DistributionalQNetwork(QNetwork):
+    """C51 (Bellemare et al. 2017; dqn-family.md 5.1): per action, a categorical
+    distribution of the return on the atoms `support` (atoms,), z_i = v_min + i dz.
+
+    `forward` gives the expected returns sum_i z_i p_i (batch, actions), so that acting,
+    evaluation, the held-out statistics and `dqnlab inspect` use it as any Q-network. The
+    loss takes `log_probabilities` (batch, actions, atoms), or both from one pass of the
+    torso with `forward_with_log_probabilities` (a target's greedy action and its
+    distribution, say). The support is a non-persistent buffer: it follows from the
+    configuration, which every network file stores.
+    """
+
+    support: torch.Tensor
+
+    def __init__(self, torso: nn.Module, head: QHead, v_min: float, v_max: float) -> None:
+        super().__init__(torso, head)
+        atoms = head.outputs_per_action
+        self.atom_spacing = (v_max - v_min) / (atoms - 1)
+        # z_i = v_min + i dz as defined, in float64 so that the last atom is v_max to float32.
+        support = v_min + torch.arange(atoms, dtype=torch.float64) * self.atom_spacing
+        self.register_buffer("support", support.float(), persistent=False)
+
+    def logits(self, observations: torch.Tensor) -> torch.Tensor:
+        """Logits of the return distributions, (batch, actions, atoms)."""
+        logits: torch.Tensor = self.head(self.torso(observations))
+        return logits
+
+    def forward(self, observations: torch.Tensor) -> torch.Tensor:
+        probabilities = F.softmax(self.logits(observations), dim=2)
+        return (probabilities * self.support).sum(dim=2)
+
+    def log_probabilities(self, observations: torch.Tensor) -> torch.Tensor:
+        """log p_i per action, (batch, actions, atoms): `log_softmax` over the atoms, finite
+        where log(softmax) would give -inf for a vanishing probability."""
+        return F.log_softmax(self.logits(observations), dim=2)
+
+    def forward_with_log_probabilities(
+        self, observations: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """`forward` and `log_probabilities` from one pass of the torso and head."""
+        logits = self.logits(observations)
+        q_values = (F.softmax(logits, dim=2) * self.support).sum(dim=2)
+        return q_values, F.log_softmax(logits, dim=2)
+
+
+def build_q_network(
+    config: Config, input_shape: tuple[int, ...], num_actions: int, is_image: bool
+) -> nn.Module:
+    """The Q-network `config` asks for, for inputs of `input_shape` (history, *observation
+    shape) and `num_actions` actions: `build_network`'s network when every head setting
+    (dueling, noisy, distributional, torso) holds its default, else a torso with a head."""
+    if not _has_torso_and_head(config):
+        return build_network(
+            config.network, input_shape, num_actions, is_image, config.mlp_hidden_sizes
+        )
+    torso = build_torso(config, input_shape, is_image)
+    c51 = config.distributional == "c51"
+    head = QHead(
+        torso.output_size,
+        torso.head_hidden_width,
+        num_actions,
+        config.distributional_atoms if c51 else 1,
+        dueling=config.dueling,
+        noisy=config.noisy,
+        noisy_sigma0=config.noisy_sigma0,
+    )
+    if c51:
+        return DistributionalQNetwork(
+            torso.module, head, config.distributional_v_min, config.distributional_v_max
+        )
+    return QNetwork(torso.module, head)
+
+
+def _has_torso_and_head(config: Config) -> bool:
+    """Whether a head setting differs from its default (the Nature DQN's network)."""
+    return (
+        config.dueling or config.noisy or config.distributional != "none" or config.torso != "auto"
+    )
+
+
+class Torso(NamedTuple):
+    """A torso, the features it gives per input, and the width of the hidden layer of the
+    head put on it (None: no hidden layer)."""
+
+    module: nn.Module
+    output_size: int
+    head_hidden_width: int | None
+
+
+def build_torso(config: Config, input_shape: tuple[int, ...], is_image: bool) -> Torso:
+    """The torso of `config`: the user's `torso = module:factory` (its head has no hidden
+    layer), or that of the network setting: the Nature CNN's convolutions (its head the
+    Nature CNN's layer of 512), or the MLP's hidden layers but the last (its head that)."""
+    if config.torso != "auto":
+        module, probe = _user_module("torso", config.torso, (input_shape,), input_shape, is_image)
+        if probe.ndim != 2 or probe.shape[0] != 2 or probe.shape[1] == 0:
+            raise ConfigError(
+                f"torso {config.torso!r} returns shape {tuple(probe.shape)} for a batch of 2; "
+                "expected (2, features)"
+            )
+        return Torso(module, int(probe.shape[1]), None)
+    name = _network_name(config.network, is_image)
+    if name == "nature_cnn":
+        nature = NatureTorso(input_shape)
+        return Torso(nature, nature.output_size, NATURE_HIDDEN_WIDTH)
+    if name == "mlp":
+        widths = config.mlp_hidden_sizes
+        mlp = MLPTorso(input_shape, widths[:-1])
+        return Torso(mlp, mlp.output_size, widths[-1] if widths else None)
+    # Config refuses a head on a whole network of the user's (`network = module:factory`).
+    raise ConfigError(f"network = {config.network!r} has no torso to put a head on")
 
 
 def build_network(
@@ -84,56 +280,71 @@ def build_network(
     is_image: bool,
     mlp_hidden_sizes: Sequence[int] = (256, 256),
 ) -> nn.Module:
-    """`auto` picks the Nature CNN for images and the MLP for vectors."""
-    if name == "auto":
-        name = "nature_cnn" if is_image else "mlp"
+    """The network setting's Q-network: `auto` picks the Nature CNN for images and the MLP
+    for vectors."""
+    name = _network_name(name, is_image)
     if name == "nature_cnn":
-        if not is_image:
-            raise ConfigError("network = 'nature_cnn' needs image observations; use mlp or auto")
         return NatureCNN(input_shape, num_actions)
     if name == "mlp":
         return MLP(input_shape, num_actions, mlp_hidden_sizes)
-    if ":" not in name:
+    network, probe = _user_module(
+        "network", name, (input_shape, num_actions), input_shape, is_image
+    )
+    if tuple(probe.shape) != (2, num_actions):
         raise ConfigError(
-            f"network = {name!r} is not one of: auto, nature_cnn, mlp, or module:factory"
-        )
-    return _user_network(name, input_shape, num_actions, is_image)
-
-
-def _user_network(
-    name: str, input_shape: tuple[int, ...], num_actions: int, is_image: bool
-) -> nn.Module:
-    module_name, _, attribute = name.partition(":")
-    try:
-        factory = getattr(importlib.import_module(module_name), attribute)
-    except (ImportError, AttributeError) as error:
-        raise ConfigError(f"network = {name!r} cannot be loaded: {error}") from None
-    try:
-        network = factory(input_shape, num_actions)
-    except Exception as error:  # noqa: BLE001 - the user's code: report, don't crash
-        raise ConfigError(f"network factory {name!r} failed: {error!r}") from None
-    if not isinstance(network, nn.Module):
-        raise ConfigError(f"network factory {name!r} returned {type(network)}, not nn.Module")
-    probe = torch.zeros((2, *input_shape), dtype=torch.uint8 if is_image else torch.float32)
-    try:
-        with torch.no_grad():
-            q_values = network(probe)
-    except Exception as error:  # noqa: BLE001
-        raise ConfigError(
-            f"network {name!r} fails on a batch of shape {tuple(probe.shape)} "
-            f"({probe.dtype}): {error!r}"
-        ) from None
-    if tuple(q_values.shape) != (2, num_actions):
-        raise ConfigError(
-            f"network {name!r} returns shape {tuple(q_values.shape)} for a batch of 2; "
+            f"network {name!r} returns shape {tuple(probe.shape)} for a batch of 2; "
             f"expected (2, {num_actions})"
         )
     return network
 
 
-def has_noise(network: nn.Module) -> bool:  # placeholder until the heads land
-    return False
+def _network_name(name: str, is_image: bool) -> str:
+    """The network setting with `auto` resolved; refuses a CNN for vectors and unknown names."""
+    if name == "auto":
+        return "nature_cnn" if is_image else "mlp"
+    if name == "nature_cnn" and not is_image:
+        raise ConfigError("network = 'nature_cnn' needs image observations; use mlp or auto")
+    if name not in ("nature_cnn", "mlp") and ":" not in name:
+        raise ConfigError(
+            f"network = {name!r} is not one of: auto, nature_cnn, mlp, or module:factory"
+        )
+    return name
 
 
-def sample_noise(network: nn.Module, generator: torch.Generator) -> None:  # placeholder
-    return None
+def _user_module(
+    setting: str,
+    name: str,
+    arguments: tuple[object, ...],
+    input_shape: tuple[int, ...],
+    is_image: bool,
+) -> tuple[nn.Module, torch.Tensor]:
+    """The module `factory(*arguments)` of the setting's `module:factory`, and its output for
+    a probe batch of 2 zero inputs in the stored dtype; the user's code failing in any way
+    is a one-line ConfigError naming the setting."""
+    module_name, _, attribute = name.partition(":")
+    try:
+        factory = getattr(importlib.import_module(module_name), attribute)
+    except (ImportError, AttributeError) as error:
+        raise ConfigError(f"{setting} = {name!r} cannot be loaded: {_one_line(error)}") from None
+    try:
+        module = factory(*arguments)
+    except Exception as error:  # noqa: BLE001 - the user's code: report, don't crash
+        raise ConfigError(f"{setting} factory {name!r} failed: {error!r}") from None
+    if not isinstance(module, nn.Module):
+        raise ConfigError(f"{setting} factory {name!r} returned {type(module)}, not nn.Module")
+    probe = torch.zeros((2, *input_shape), dtype=torch.uint8 if is_image else torch.float32)
+    try:
+        with torch.no_grad():
+            output = module(probe)
+    except Exception as error:  # noqa: BLE001
+        raise ConfigError(
+            f"{setting} {name!r} fails on a batch of shape {tuple(probe.shape)} "
+            f"({probe.dtype}): {error!r}"
+        ) from None
+    if not isinstance(output, torch.Tensor):
+        raise ConfigError(f"{setting} {name!r} returns {type(output)}, not a tensor")
+    return module, output
+
+
+def _one_line(error: BaseException) -> str:
+    return " ".join(str(error).split())

@@ -1,0 +1,200 @@
+"""Heads of the DQN family's Q-networks: dueling streams, noisy linear layers, C51 logits.
+
+A head maps a torso's features (batch, features) to outputs per action, (batch, actions,
+outputs_per_action): one Q-value per action, or with C51 the logits of each action's
+return distribution on its atoms. The parts compose: any head may be dueling, noisy and
+distributional at once, which is Rainbow's head (Hessel et al. 2018; dqn-family.md 6.1).
+`networks.py` puts a head on a torso.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+# Wang et al. 2016 rescale the combined gradient entering the last convolutional layer by
+# 1/sqrt(2), as both streams send one into the torso (dqn-family.md 2.1, secondary copies).
+DUELING_TORSO_GRADIENT_SCALE = 1.0 / math.sqrt(2.0)
+
+
+class NoisyLinear(nn.Module):
+    """A linear layer with factorised Gaussian noise (Fortunato et al. 2018, NoisyNets).
+
+    In train mode the layer uses w = mu_w + sigma_w * eps_w and b = mu_b + sigma_b * eps_b,
+    with the factorised noise eps_w = f(eps_out) f(eps_in)^T, eps_b = f(eps_out),
+    f(x) = sign(x) sqrt(|x|) and eps_in (in_features,), eps_out (out_features,) drawn from
+    N(0, 1). In eval mode (`module.eval()`) it uses the mean weights mu: evaluation, the
+    held-out statistics and `dqnlab inspect` see no noise (Dopamine's `NoisyNetwork` turns
+    the noise off when evaluating too; dqn-family.md 6.3).
+
+    Initialisation as in the paper's factorised case: mu ~ U(+-1/sqrt(in_features)) and
+    sigma = sigma0 / sqrt(in_features), for weights and biases alike. The paper and
+    Rainbow use sigma0 = 0.5 (Rainbow's footnote: 0.1 "may be helpful" when the noise is
+    drawn on the CPU); dqn_zoo (`networks.noisy_linear`, noisy_weight_init) and Dopamine
+    (`dopamine/jax/networks.py::NoisyNetwork`) use 0.1, and dqn_zoo draws eps from a normal
+    truncated at +-2; CleanRL's `rainbow_atari.py::NoisyLinear` uses 0.5 with independent,
+    not factorised, noise and a bias sigma of 0.5/sqrt(out_features) (dqn-family.md 6.3,
+    8.6).
+
+    The noise changes only when `resample_noise` is called (`sample_noise` calls it on every
+    noisy layer of a network), with a generator the caller owns and checkpoints: drawing it
+    inside `forward` would take it from torch's global stream and tie it to how often the
+    network is called. Until first drawn the noise is zero. The noise buffers are not
+    persistent (not in the state dict): they are not learned, a target-network copy through
+    `load_state_dict` leaves the target's own noise in place, and network files stay the
+    size of mu and sigma. A caller that must resume exactly draws fresh noise right before
+    each use from its restored generator (noise drawn before a checkpoint is not saved).
+    """
+
+    weight_epsilon: torch.Tensor
+    bias_epsilon: torch.Tensor
+    input_epsilon: torch.Tensor
+
+    def __init__(self, in_features: int, out_features: int, sigma0: float) -> None:
+        super().__init__()
+        self.in_features = in_features
+        self.out_features = out_features
+        self.sigma0 = sigma0
+        self.weight_mu = nn.Parameter(torch.empty(out_features, in_features))
+        self.weight_sigma = nn.Parameter(torch.empty(out_features, in_features))
+        self.bias_mu = nn.Parameter(torch.empty(out_features))
+        self.bias_sigma = nn.Parameter(torch.empty(out_features))
+        # f(eps_in), f(eps_out) (the bias noise) and their outer product, drawn in place.
+        self.register_buffer("input_epsilon", torch.zeros(in_features), persistent=False)
+        self.register_buffer("bias_epsilon", torch.zeros(out_features), persistent=False)
+        self.register_buffer(
+            "weight_epsilon", torch.zeros(out_features, in_features), persistent=False
+        )
+        bound = 1.0 / math.sqrt(in_features)
+        nn.init.uniform_(self.weight_mu, -bound, bound)
+        nn.init.uniform_(self.bias_mu, -bound, bound)
+        nn.init.constant_(self.weight_sigma, sigma0 * bound)
+        nn.init.constant_(self.bias_sigma, sigma0 * bound)
+
+    def forward(self, inputs: torch.Tensor) -> torch.Tensor:
+        if not self.training:
+            return F.linear(inputs, self.weight_mu, self.bias_mu)
+        weight = torch.addcmul(self.weight_mu, self.weight_sigma, self.weight_epsilon)
+        bias = torch.addcmul(self.bias_mu, self.bias_sigma, self.bias_epsilon)
+        return F.linear(inputs, weight, bias)
+
+    @torch.no_grad()
+    def resample_noise(self, generator: torch.Generator) -> None:
+        """Draw new noise from `generator` (eps_in first, then eps_out), into the buffers."""
+        if generator.device.type != self.weight_epsilon.device.type:
+            raise ValueError(
+                f"the noise generator is on {generator.device}, the noisy layer on "
+                f"{self.weight_epsilon.device}: make the generator on the network's device"
+            )
+        for epsilon in (self.input_epsilon, self.bias_epsilon):
+            epsilon.normal_(generator=generator)
+            sign = epsilon.sign()
+            epsilon.abs_().sqrt_().mul_(sign)  # f(x) = sign(x) sqrt(|x|)
+        torch.outer(self.bias_epsilon, self.input_epsilon, out=self.weight_epsilon)
+
+    def extra_repr(self) -> str:
+        sizes = f"in_features={self.in_features}, out_features={self.out_features}"
+        return f"{sizes}, sigma0={self.sigma0}"
+
+
+def sample_noise(network: nn.Module, generator: torch.Generator) -> None:
+    """Resample the noise of every `NoisyLinear` in `network`, in module order, from
+    `generator` (on the network's device). Allocates nothing larger than the noise vectors:
+    the weight noise is written in place into preallocated buffers."""
+    for module in network.modules():
+        if isinstance(module, NoisyLinear):
+            module.resample_noise(generator)
+
+
+def has_noise(network: nn.Module) -> bool:
+    """Whether `network` has noisy layers, whose noise its user must draw (`sample_noise`)."""
+    return any(isinstance(module, NoisyLinear) for module in network.modules())
+
+
+class _ScaleGradient(torch.autograd.Function):
+    """The identity forward; the gradient multiplied by `scale` backward."""
+
+    @staticmethod
+    def forward(ctx: Any, tensor: torch.Tensor, scale: float) -> torch.Tensor:
+        ctx.scale = scale
+        return tensor.view_as(tensor)
+
+    @staticmethod
+    def backward(ctx: Any, gradient: torch.Tensor) -> tuple[torch.Tensor, None]:
+        return gradient * ctx.scale, None
+
+
+def scale_gradient(tensor: torch.Tensor, scale: float) -> torch.Tensor:
+    """`tensor` unchanged, with the gradient flowing back through it multiplied by `scale`."""
+    output: torch.Tensor = _ScaleGradient.apply(tensor, scale)
+    return output
+
+
+class QHead(nn.Module):
+    """Outputs per action from a torso's features: (batch, actions, outputs_per_action).
+
+    Each stream is a hidden layer of `hidden_width` units and ReLU (none when `hidden_width`
+    is None), then a linear output layer; with `noisy` every one of these layers is a
+    `NoisyLinear` (Rainbow replaces all linear layers; dqn-family.md 6.1).
+
+    `dueling` (Wang et al. 2016; dqn-family.md 2.1): a value stream with
+    `outputs_per_action` outputs and an advantage stream with actions x outputs_per_action,
+    each with its own hidden layer (the paper's Atari network: FC-512 -> 1 and FC-512 ->
+    |A|), combined as value + advantage - mean over actions of advantage. With C51 the
+    combination is per atom, on the logits, before the softmax over atoms (Rainbow,
+    dqn-family.md 6.1; dqn_zoo `networks.rainbow_atari_network` and CleanRL
+    `rainbow_atari.py` likewise; Dopamine's `FullRainbowNetwork` shares one hidden layer
+    between the streams). The gradient entering the torso is scaled by 1/sqrt(2), as the
+    paper does; dqn_zoo, Dopamine and CleanRL do not (dqn-family.md 2.2).
+    """
+
+    def __init__(
+        self,
+        in_features: int,
+        hidden_width: int | None,
+        num_actions: int,
+        outputs_per_action: int = 1,
+        *,
+        dueling: bool = False,
+        noisy: bool = False,
+        noisy_sigma0: float = 0.5,
+    ) -> None:
+        super().__init__()
+        self.num_actions = num_actions
+        self.outputs_per_action = outputs_per_action
+        self.dueling = dueling
+        self.noisy = noisy
+        self.noisy_sigma0 = noisy_sigma0
+        if dueling:
+            self.value = self._stream(in_features, hidden_width, outputs_per_action)
+            self.advantage = self._stream(
+                in_features, hidden_width, num_actions * outputs_per_action
+            )
+        else:
+            self.outputs = self._stream(in_features, hidden_width, num_actions * outputs_per_action)
+
+    def _stream(self, in_features: int, hidden_width: int | None, outputs: int) -> nn.Sequential:
+        layers: list[nn.Module] = []
+        if hidden_width is not None:
+            layers += [self._linear(in_features, hidden_width), nn.ReLU()]
+            in_features = hidden_width
+        layers.append(self._linear(in_features, outputs))
+        return nn.Sequential(*layers)
+
+    def _linear(self, in_features: int, out_features: int) -> nn.Module:
+        if self.noisy:
+            return NoisyLinear(in_features, out_features, self.noisy_sigma0)
+        return nn.Linear(in_features, out_features)
+
+    def forward(self, features: torch.Tensor) -> torch.Tensor:
+        shape = (self.num_actions, self.outputs_per_action)
+        if not self.dueling:
+            return self.outputs(features).unflatten(1, shape)
+        features = scale_gradient(features, DUELING_TORSO_GRADIENT_SCALE)
+        value = self.value(features).unsqueeze(1)  # (batch, 1, outputs_per_action)
+        advantage = self.advantage(features).unflatten(1, shape)
+        return value + advantage - advantage.mean(dim=1, keepdim=True)
