@@ -31,3 +31,37 @@ def test_classic_preset_solves_cartpole(tmp_path: Path, seed: int) -> None:
           f"final 20 games {result.mean:.1f} ± {result.std:.1f}")  # fmt: skip
     assert len(result.scores) == 20
     assert result.mean >= 475
+
+
+# Each part of the DQN family on top of the classic preset (its learning settings, which
+# solve CartPole-v1), and the example variant: each must solve it too. C51's support
+# covers CartPole's returns (at most 1 / (1 - 0.99) = 100 with a reward of 1 per step).
+CARTPOLE_C51 = {"distributional": "c51", "distributional_v_min": 0.0, "distributional_v_max": 100.0}
+VARIANTS = {
+    "double": {"target": "double"},
+    "dueling": {"dueling": True},
+    "prioritized": {"replay_sampling": "prioritized"},
+    "n_step": {"n_step": 3},
+    "c51": CARTPOLE_C51,
+    "noisy": {"noisy": True, "epsilon_start": 0.0, "epsilon_end": 0.0},
+    "rainbow": {
+        **CARTPOLE_C51, "target": "double", "dueling": True, "noisy": True, "n_step": 3,
+        "replay_sampling": "prioritized", "priority_exponent": 0.5, "epsilon_start": 0.0,
+        "epsilon_end": 0.0, "max_gradient_norm": 10.0,
+    },
+    "munchausen": {"loss": "examples.munchausen:MunchausenLoss"},
+}  # fmt: skip
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("variant", list(VARIANTS))
+def test_each_variant_solves_cartpole(tmp_path: Path, variant: str) -> None:
+    config = resolve_config("classic", env="CartPole-v1", seed=0, **VARIANTS[variant])
+    run = tmp_path / variant
+    prepare_run_dir(run, force=False)
+    trained = train(config, run, torch.device("cpu"), progress=False, tensorboard=False)
+    result, _ = final_evaluation(run, "best", 20, seed=1000, device=torch.device("cpu"))
+    first_solved = next((step for step, mean in trained.evaluations if mean >= 475), None)
+    print(f"{variant}: first periodic evaluation >= 475 at step {first_solved}; "
+          f"final 20 games {result.mean:.1f} ± {result.std:.1f}")  # fmt: skip
+    assert result.mean >= 475

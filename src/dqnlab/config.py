@@ -64,7 +64,9 @@ class Config:
     mlp_hidden_sizes: tuple[int, ...] = _setting((256, 256), "Hidden layer widths of the MLP")
     # Replay memory.
     replay_capacity: int = _setting(1_000_000, "Transitions held in replay memory")
-    replay_start_steps: int = _setting(50_000, "Uniform random steps before the first update")
+    replay_start_steps: int = _setting(
+        50_000, "Agent steps before the first update, acting at epsilon_start (1.0: uniformly)"
+    )
     batch_size: int = _setting(32, "Transitions per gradient step, uniform with replacement")
     # Learning.
     update_period_steps: int = _setting(4, "Agent steps between gradient steps")
