@@ -72,6 +72,11 @@ class TrainingState:
             pin_memory=device.type == "cuda" and on_device is None,
             compression=config.replay_compression,
             expected_frame_bytes=expected_frame_bytes(config.replay_compression, config.env),
+            n_step=config.n_step,
+            discount=config.discount,
+            sampling=config.replay_sampling,
+            priority_exponent=config.priority_exponent,
+            priority_epsilon=config.priority_epsilon,
         )
         if replay is None and config.replay_compression != "none" and not self.replay.compressed:
             print(
