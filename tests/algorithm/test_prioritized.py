@@ -16,6 +16,7 @@ from dqnlab.algorithm.prioritized import (
     ProportionalPriorities,
     SumTree,
     importance_weights,
+    measure_sampling,
 )
 
 STRICT_P = 1e-3  # chi-square tests: a fixed seed, so pass or fail is deterministic
@@ -210,3 +211,9 @@ def test_state_round_trip_through_a_checkpoints_loader() -> None:
     np.testing.assert_array_equal(
         draw_counts(loaded, 20, 32, 9), draw_counts(priorities, 20, 32, 9)
     )
+
+
+def test_the_benchmark_measures_a_draw_and_an_update() -> None:
+    figures = measure_sampling(capacity=1000, batch_size=8, repeats=5, fanout=4)
+    assert figures["depth"] == 5 and figures["fanout"] == 4
+    assert figures["sample_us"] > 0 and figures["update_us"] > 0

@@ -1,8 +1,8 @@
 """Proportional prioritized replay (Schaul et al. 2016): priorities of the replay's slots
 in a sum tree, sampled in proportion to them.
 
-Sections 3.3 and B.2.1 of the paper: the priority of transition i is p_i = |δ_i| + ε, it is
-drawn with probability P(i) = p_i^α / Σ_k p_k^α, and its update is weighted by
+Section 3.3 of the paper: the priority of transition i is p_i = |δ_i| + ε and it is drawn
+with probability P(i) = p_i^α / Σ_k p_k^α; section 3.4: its update is weighted by
 w_i = (N · P(i))^-β, divided by the largest weight so that weights only scale updates
 down. A new transition enters at the largest priority seen so far (Algorithm 1, line 6;
 p_1 = 1), so that it is replayed at least once soon. The minibatch is drawn stratified: the
@@ -29,7 +29,7 @@ import torch
 
 # Children per node. Wider nodes mean fewer levels, and so fewer NumPy calls per descent
 # and per update, each of which costs about a microsecond however few its elements: a 1M
-# tree has 4 levels below its root at 32, 20 at 2 (the README's figures: `measure_sampling`).
+# tree has 4 levels below its root at 32, 20 at 2 (`measure_sampling` compares them).
 FANOUT = 32
 # Smallest leaf of a valid slot: with priority_epsilon = 0 a zero error would otherwise give
 # a zero leaf, which `ReplayMemory` reserves for slots that cannot be sampled.
@@ -223,13 +223,17 @@ class ProportionalPriorities:
 
 
 def measure_sampling(
-    capacity: int = 1_000_000, batch_size: int = 32, repeats: int = 2000, seed: int = 0
+    capacity: int = 1_000_000,
+    batch_size: int = 32,
+    repeats: int = 2000,
+    seed: int = 0,
+    fanout: int = FANOUT,
 ) -> dict[str, float]:
     """Median microseconds of a prioritized minibatch draw (stratified descent, P(i),
     importance weights) and of the priority update that follows it, on a full tree of
     `capacity` random priorities: the replay's part of one prioritized update."""
     rng = np.random.default_rng(seed)
-    priorities = ProportionalPriorities(capacity, exponent=0.6, epsilon=1e-6)
+    priorities = ProportionalPriorities(capacity, exponent=0.6, epsilon=1e-6, fanout=fanout)
     priorities.tree.load(priorities.leaf_values(rng.exponential(size=capacity)))
     uniforms = np.empty(batch_size)
     slots = np.empty(batch_size, dtype=np.int64)
@@ -251,6 +255,7 @@ def measure_sampling(
     return {
         "capacity": capacity,
         "batch_size": batch_size,
+        "fanout": fanout,
         "depth": priorities.tree.depth,
         "sample_us": statistics.median(sample_us),
         "update_us": statistics.median(update_us),
