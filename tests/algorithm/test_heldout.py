@@ -13,9 +13,9 @@ from dqnlab.algorithm.replay import ReplayMemory
 from dqnlab.run.state import TrainingState
 
 
-def filled_replay(batch_size: int = 8) -> ReplayMemory:
+def filled_replay(batch_size: int = 8, n_step: int = 1) -> ReplayMemory:
     """Vector observations (3 numbers) in episodes of 7 steps, rewards in {-1, 0, 1}."""
-    replay = ReplayMemory(100, (3,), np.float32, 2, batch_size, seed=1)
+    replay = ReplayMemory(100, (3,), np.float32, 2, batch_size, seed=1, n_step=n_step)
     rng = np.random.default_rng(0)
     for step in range(90):
         replay.add(
@@ -58,6 +58,24 @@ def test_the_set_holds_the_replays_transitions_and_leaves_its_minibatches_alone(
         assert heldout.terminals[start : start + count].tolist() == terminals
     # Drawing with its own generator: the run's next minibatch is the one it would be.
     assert np.array_equal(replay.sample_indices(8), twin.sample_indices(8))
+
+
+def test_the_set_is_one_step_whatever_the_replays_n_step() -> None:
+    """The Lua code's figure is a one-step TD error: with n_step = 3 the set holds the
+    one-step windows, rewards and terminals of the transitions drawn."""
+    one_step, three_step = filled_replay(), filled_replay(n_step=3)
+    heldout = HeldOutSet.draw(three_step, 21, np.random.default_rng(5))
+    assert heldout is not None
+    indices = three_step.sample_indices(21, np.random.default_rng(5))  # the same draw
+    for start in range(0, 21, 8):
+        part = indices[start : start + 8]
+        batch = one_step.gather(np.resize(part, 8))
+        count = len(part)
+        assert np.array_equal(heldout.windows[start : start + count].numpy(), batch.window[:count])
+        assert heldout.rewards[start : start + count].tolist() == batch.rewards[:count].tolist()
+        terminals = batch.terminals[:count].tolist()
+        assert heldout.terminals[start : start + count].tolist() == terminals
+    assert heldout.rewards.tolist() == three_step.rewards[indices].tolist()
 
 
 def test_statistics_equal_a_direct_forward_pass_on_the_stored_set() -> None:

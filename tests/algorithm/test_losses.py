@@ -287,3 +287,17 @@ def test_a_users_loss_part_is_built_from_its_import_path(monkeypatch) -> None:
         with pytest.raises(ConfigError, match=message) as error:
             build_loss(dataclasses.replace(NATURE, loss=path))
         assert "\n" not in str(error.value) and path in str(error.value)
+
+
+def test_prioritized_replay_refuses_a_loss_part_without_priorities_before_the_run(
+    monkeypatch,
+) -> None:
+    module = types.ModuleType("user_parts_2")
+    module.HalfLoss = HalfLoss  # type: ignore[attr-defined]
+    monkeypatch.setitem(sys.modules, "user_parts_2", module)
+    config = dataclasses.replace(
+        NATURE, loss="user_parts_2:HalfLoss", replay_sampling="prioritized", history_length=1
+    )
+    with pytest.raises(ConfigError, match="gives no priorities, which replay_sampling"):
+        Agent(Linear1([1.0, 2.0]), 2, config, torch.device("cpu"), seed=0,
+              input_shape=(1, 1), observation_dtype=np.dtype(np.float32))  # fmt: skip

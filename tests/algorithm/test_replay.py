@@ -217,3 +217,389 @@ def test_upload_copies_frames_loaded_into_the_host_arrays() -> None:
     for _ in range(20):
         expected, got = source.sample(), replay.sample()
         np.testing.assert_array_equal(got.observations.numpy(), expected.observations)
+
+
+# n-step returns --------------------------------------------------------------------------
+
+
+def n_step_memory(
+    capacity: int = 40, n_step: int = 3, batch: int = 1, discount: float = 0.5, **options
+) -> ReplayMemory:
+    return ReplayMemory(
+        capacity, (2, 2), np.uint8, 4, batch, seed=0, n_step=n_step, discount=discount, **options
+    )
+
+
+def walked_transition(replay: ReplayMemory, start: int) -> tuple[float, bool, int, int]:
+    """(return, terminal, m, next slot) of the transition at `start`, by walking the
+    stored steps one at a time."""
+    total, k = 0.0, 0
+    while True:
+        slot = (start + k) % replay.capacity
+        total += replay.discount**k * float(replay.rewards[slot])
+        k += 1
+        next_slot = (start + k) % replay.capacity
+        if replay.terminals[slot]:
+            return total, True, k, next_slot
+        if replay.is_last[next_slot] or k == replay.n_step:
+            return total, False, k, next_slot
+
+
+def walked_history(replay: ReplayMemory, slot: int) -> list[int]:
+    """The frame values of the history ending at `slot`, zeros before its episode."""
+    frames = [int(replay.frames[slot][0, 0])]
+    for _ in range(replay.history_length - 1):
+        before = slot - 1
+        if (before < 0 and replay.size < replay.capacity) or replay.is_last[before]:
+            break
+        slot = before % replay.capacity
+        frames.insert(0, int(replay.frames[slot][0, 0]))
+    return [0] * (replay.history_length - len(frames)) + frames
+
+
+def assert_walked(replay: ReplayMemory, indices: np.ndarray) -> None:
+    """gather(indices) equals the plain walk over the stored steps, transition by transition."""
+    batch = replay.gather(indices)
+    assert batch.indices is not None and batch.discounts is not None
+    assert batch.indices.tolist() == indices.tolist()
+    for row, start in enumerate(indices.tolist()):
+        total, terminal, steps, next_slot = walked_transition(replay, start)
+        assert batch.rewards[row] == pytest.approx(total, rel=1e-6, abs=1e-6)
+        assert batch.terminals[row] == float(terminal)
+        assert batch.discounts[row] == np.float32(replay.discount**steps)
+        assert batch.actions[row] == replay.actions[start]
+        assert values(batch.observations[row]) == walked_history(replay, start)
+        assert values(batch.next_observations[row]) == walked_history(replay, next_slot)
+
+
+def test_n_step_windows_by_hand() -> None:
+    replay = n_step_memory()
+    fill_episode(replay, first=1, length=6, terminal=True)  # slots 0..5 = 1..6, final 7 at 6
+    fill_episode(replay, first=11, length=4, terminal=False)  # 7..10 = 11..14, final at 11
+    # A life lost (stored as terminal) at 22: the window stops there; the game goes on at 31.
+    fill_episode(replay, first=21, length=2, terminal=True)  # 12, 13 = 21, 22, final 23 at 14
+    fill_episode(replay, first=31, length=5, terminal=False)  # 15..19 = 31..35, final at 20
+    batch = replay.gather(np.array([0]))  # mid-episode: 1 + 2/2 + 3/4, bootstrap from 4
+    assert (batch.rewards[0], batch.terminals[0], batch.discounts[0]) == (2.75, 0.0, 0.125)
+    assert values(batch.observations[0]) == [0, 0, 0, 1]
+    assert values(batch.next_observations[0]) == [1, 2, 3, 4]
+    assert batch.window is None
+    batch = replay.gather(np.array([4]))  # 5 + 6/2, then the terminal state 7: no bootstrap
+    assert (batch.rewards[0], batch.terminals[0], batch.discounts[0]) == (8.0, 1.0, 0.25)
+    assert values(batch.next_observations[0]) == [4, 5, 6, 7]
+    batch = replay.gather(np.array([9]))  # truncated: 13 + 14/2, bootstrap from 15 with γ^2
+    assert (batch.rewards[0], batch.terminals[0], batch.discounts[0]) == (20.0, 0.0, 0.25)
+    assert values(batch.next_observations[0]) == [12, 13, 14, 15]
+    batch = replay.gather(np.array([12]))  # the life lost at 22 cuts the window: 21 + 22/2
+    assert (batch.rewards[0], batch.terminals[0], batch.discounts[0]) == (32.0, 1.0, 0.25)
+    batch = replay.gather(np.array([15]))  # the next life starts afresh: 31 + 16 + 8.25
+    assert (batch.rewards[0], batch.terminals[0]) == (55.25, 0.0)
+    assert values(batch.observations[0]) == [0, 0, 0, 31]
+    assert values(batch.next_observations[0]) == [31, 32, 33, 34]
+    for start in np.flatnonzero(replay._valid(np.arange(replay.capacity))):
+        assert_walked(replay, np.array([start]))
+
+
+def test_n_step_windows_near_the_write_head_wait_for_their_last_slot() -> None:
+    replay = n_step_memory(batch=32)
+    for value in range(1, 11):  # one episode going on: slots 0..9
+        replay.add(frame(value), action=0, reward=1.0, terminal=False)
+    assert np.flatnonzero(replay._valid(np.arange(40))).tolist() == list(range(7))
+    assert max(np.concatenate([replay.sample_indices(32) for _ in range(30)])) == 6
+    replay.add_last(frame(11))  # truncated at slot 10: the windows ending there are complete
+    assert np.flatnonzero(replay._valid(np.arange(40))).tolist() == list(range(10))
+    assert replay.gather(np.arange(32) % 10).discounts[7:10].tolist() == [0.125, 0.25, 0.5]
+
+
+def test_n_step_windows_across_the_ring_end() -> None:
+    replay = n_step_memory(capacity=10)
+    for value in range(1, 16):  # one long episode: slots hold 11..15, 6..10; newest slot 4
+        replay.add(frame(value), action=value % 3, reward=float(value), terminal=False)
+    # Full histories (age >= 3) and windows ending at or before the newest slot.
+    assert np.flatnonzero(replay._valid(np.arange(10))).tolist() == [0, 1, 8, 9]
+    batch = replay.gather(np.array([9]))  # 10 + 11/2 + 12/4, next state 13 at slot 2
+    assert batch.rewards[0] == 18.5 and batch.discounts[0] == 0.125
+    assert values(batch.observations[0]) == [7, 8, 9, 10]
+    assert values(batch.next_observations[0]) == [10, 11, 12, 13]
+
+
+@pytest.mark.parametrize("n_step", [2, 3, 5])
+def test_n_step_batches_equal_a_walk_over_the_stored_steps(n_step: int) -> None:
+    """Random episodes (terminal, truncated, long and short) round a 29-slot ring five
+    times: every valid transition equals the plain walk."""
+    replay = n_step_memory(capacity=29, n_step=n_step, batch=8, discount=0.9)
+    rng = np.random.default_rng(n_step)
+    for step in range(150):
+        if rng.random() < 0.12:
+            if rng.random() < 0.5:
+                replay.terminals[(replay.position - 1) % 29] = True
+            replay.add_last(frame(step % 250 + 1))
+        else:
+            reward = float(np.float32(rng.uniform(-1, 1)))
+            replay.add(frame(step % 250 + 1), int(rng.integers(4)), reward, False)
+        valid = np.flatnonzero(replay._valid(np.arange(29)))
+        for begin in range(0, len(valid), 8):
+            assert_walked(replay, np.resize(valid[begin : begin + 8], 8))
+
+
+def test_one_step_is_todays_replay_whatever_the_new_arguments() -> None:
+    """n_step = 1: the same random draws, windows and bytes as a replay built without the
+    new arguments; γ in `discounts`, no importance weights."""
+    today = memory(capacity=30, batch=8)
+    explicit = ReplayMemory(30, (2, 2), np.uint8, 4, 8, seed=0, n_step=1, discount=0.9)
+    for replay in (today, explicit):
+        fill_episode(replay, first=1, length=12)
+        fill_episode(replay, first=40, length=25, terminal=False)
+    for _ in range(20):
+        a, b = today.sample(), explicit.sample()
+        assert a.window is not None and b.window is not None
+        assert a.window.tobytes() == b.window.tobytes()
+        assert np.array_equal(a.indices, b.indices)
+        for name in ("actions", "rewards", "terminals"):
+            assert np.array_equal(getattr(a, name), getattr(b, name))
+        assert b.discounts.tolist() == [np.float32(0.9)] * 8 and b.weights is None
+
+
+# The validity invariant ---------------------------------------------------------------
+
+
+def written_valid(replay: ReplayMemory, written_at: list[int]) -> np.ndarray:
+    """Which slots can start a transition, from when each slot was written (-1: never):
+    its history's slots still hold the writes just before its own (before the ring is
+    full, a history reaching back before the first write is zeros), and its n-step window
+    is stored (each next slot written right after the one before)."""
+    capacity, valid = replay.capacity, np.zeros(replay.capacity, dtype=bool)
+    filling = replay.size < capacity
+    for slot in range(capacity):
+        time = written_at[slot]
+        if time < 0 or replay.is_last[slot]:
+            continue
+        history = [((slot - k) % capacity, time - k) for k in range(1, replay.history_length)]
+        if any(written_at[s] != t and not (t < 0 and filling) for s, t in history):
+            continue  # overwritten by newer data
+        for k in range(replay.n_step):
+            next_slot = (slot + k + 1) % capacity
+            if written_at[next_slot] != time + k + 1:
+                break  # not stored yet
+            if replay.terminals[(slot + k) % capacity] or replay.is_last[next_slot]:
+                valid[slot] = True
+                break
+        else:
+            valid[slot] = True
+    return valid
+
+
+@pytest.mark.parametrize("n_step", [1, 3])
+@pytest.mark.parametrize("sampling", ["uniform", "prioritized"])
+@pytest.mark.parametrize("storage", ["host", "lz4", "device"])
+def test_valid_slots_and_nonzero_priorities_are_the_same_after_every_write(
+    n_step: int, sampling: str, storage: str
+) -> None:
+    """Random episodes round a 23-slot ring thirteen times; after every write the valid
+    slots equal those worked out from the write times and, with priorities, are exactly
+    the non-zero leaves; draws come from them alone."""
+    options = {
+        "host": {},
+        "lz4": {"compression": "lz4", "chunk_slots": 8},
+        "device": {"device": torch.device("cpu")},
+    }[storage]
+    replay = ReplayMemory(
+        23, (2, 2), np.uint8, 4, 8, seed=0, n_step=n_step, sampling=sampling, **options
+    )
+    rng = np.random.default_rng(5)
+    written_at = [-1] * 23
+    for step in range(300):
+        written_at[replay.position] = step
+        if rng.random() < 0.15:
+            replay.add_last(frame(step % 250))
+        else:
+            replay.add(frame(step % 250), 0, float(rng.random()), bool(rng.random() < 0.1))
+        expected = written_valid(replay, written_at)
+        assert replay._valid(np.arange(23)).tolist() == expected.tolist(), step
+        if replay.priorities is not None:
+            assert (replay.priorities.tree.leaves > 0).tolist() == expected.tolist(), step
+        if step % 7 == 0 and expected.any():
+            batch = replay.sample(importance_exponent=0.5)
+            assert batch.indices is not None and expected[batch.indices].all()
+            replay.update_priorities(batch.indices, rng.exponential(size=8))
+
+
+# Prioritized sampling -----------------------------------------------------------------
+
+
+def prioritized_memory(n_step: int = 1, **options) -> ReplayMemory:
+    replay = ReplayMemory(
+        50, (2, 2), np.uint8, 4, 32, seed=1, n_step=n_step, discount=0.9,
+        sampling="prioritized", priority_exponent=0.5, priority_epsilon=0.25, **options,
+    )  # fmt: skip
+    rng = np.random.default_rng(2)
+    for step in range(80):  # round the ring once and a half, episodes of 9
+        if step % 9 == 8:
+            replay.add_last(frame(step))
+        else:
+            replay.add(frame(step), step % 3, float(rng.uniform(-1, 1)), step % 9 == 7)
+    return replay
+
+
+def test_new_transitions_enter_at_the_largest_priority_seen() -> None:
+    replay = prioritized_memory()
+    assert replay.priorities is not None
+    leaves = replay.priorities.tree.leaves
+    valid = replay._valid(np.arange(50))
+    assert leaves[valid].tolist() == [1.0] * int(valid.sum())  # p_1 = 1, before any update
+    batch = replay.sample(importance_exponent=0.4)
+    assert batch.indices is not None
+    indices = batch.indices.copy()
+    errors = np.full(32, 0.5)
+    errors[-1] = 8.75
+    replay.update_priorities(indices, errors)
+    assert leaves[indices[-1]] == 3.0  # (8.75 + 0.25)^0.5
+    others = indices[indices != indices[-1]]
+    assert np.all(leaves[others] == np.sqrt(0.75))
+    assert replay.priorities.max_priority == 9.0
+    replay.add(frame(200), 0, 0.0, False)
+    replay.add(frame(201), 0, 0.0, False)  # completes the window of the slot before
+    assert leaves[(replay.position - 2) % 50] == 3.0  # 9^0.5
+
+
+def test_priority_updates_skip_stale_and_invalid_slots_and_take_tensors() -> None:
+    replay = prioritized_memory()
+    assert replay.priorities is not None
+    leaves = replay.priorities.tree.leaves
+    batch = replay.sample(importance_exponent=1.0)
+    assert batch.indices is not None
+    indices = batch.indices.copy()
+    final = int(np.flatnonzero(replay.is_last)[0])  # never valid: a priority must not stick
+    replay.update_priorities(np.array([final]), np.array([3.0]))
+    assert leaves[final] == 0.0
+    # 30 slots written since the draw: some of the drawn ones now hold new transitions,
+    # valid again at the largest priority, which the errors of the old ones must not touch.
+    written = {(replay.position + k) % 50 for k in range(30)}
+    for value in range(30):
+        replay.add(frame(value), 0, 0.0, False)
+    before = leaves.copy()
+    assert any(before[i] > 0 for i in indices if i in written)
+    replay.update_priorities(indices, torch.full((32,), 1.75))  # a tensor, as a loss gives
+    changed = np.flatnonzero(leaves != before)
+    expected = {int(i) for i in indices if i not in written and before[i] > 0.0}
+    assert expected and set(changed.tolist()) == expected
+    assert np.all(leaves[changed] == np.sqrt(2.0))
+    with pytest.raises(ValueError, match="3 errors for 2 indices"):
+        replay.update_priorities(np.array([0, 1]), np.ones(3))
+
+
+def test_weights_are_the_batch_normalised_importance_weights_of_the_drawn_slots() -> None:
+    replay = prioritized_memory()
+    assert replay.priorities is not None
+    rng = np.random.default_rng(3)
+    for _ in range(5):
+        batch = replay.sample(importance_exponent=0.4)
+        assert batch.indices is not None
+        replay.update_priorities(batch.indices, rng.exponential(size=32))
+    batch = replay.sample(importance_exponent=0.4)
+    assert batch.indices is not None and batch.weights is not None
+    probabilities = replay.priorities.tree.leaves[batch.indices] / replay.priorities.tree.total
+    weights = (replay.size * probabilities) ** -0.4
+    np.testing.assert_allclose(batch.weights, weights / weights.max(), rtol=1e-6)
+    assert batch.weights.dtype == np.float32 and batch.weights.max() == 1.0
+    with pytest.raises(ValueError, match="importance exponent"):
+        replay.sample()
+
+
+def test_prioritized_draws_follow_the_priorities_of_valid_slots_chi_square() -> None:
+    from scipy.stats import chisquare
+
+    replay = prioritized_memory(n_step=3)
+    assert replay.priorities is not None
+    rng = np.random.default_rng(4)
+    valid = replay._valid(np.arange(50))
+    replay.update_priorities(np.flatnonzero(valid), rng.exponential(size=int(valid.sum())))
+    counts = np.zeros(50, dtype=np.int64)
+    for _ in range(2000):
+        batch = replay.sample(importance_exponent=0.5)
+        assert batch.indices is not None
+        counts += np.bincount(batch.indices, minlength=50)
+    assert counts[~valid].sum() == 0
+    expected = replay.priorities.tree.leaves / replay.priorities.tree.total * counts.sum()
+    assert chisquare(counts[valid], expected[valid]).pvalue > 1e-3
+
+
+def test_uniform_sampling_has_no_weights_and_ignores_errors() -> None:
+    replay = memory(batch=4)
+    fill_episode(replay, first=1, length=10)
+    batch = replay.sample()
+    assert batch.weights is None and replay.priorities is None
+    replay.update_priorities(batch.indices, np.ones(4))  # nothing to do
+
+
+@pytest.mark.parametrize("sampling", ["uniform", "prioritized"])
+def test_n_step_batches_are_the_same_from_compressed_frames_and_a_device_copy(
+    sampling: str,
+) -> None:
+    host, packed, device = (
+        prioritized_memory(n_step=3, **options)
+        if sampling == "prioritized"
+        else n_step_memory(capacity=50, batch=32, **options)
+        for options in (
+            {},
+            {"compression": "lz4", "chunk_slots": 12},
+            {"device": torch.device("cpu")},
+        )
+    )
+    if sampling == "uniform":
+        for replay in (host, packed, device):
+            for episode in range(9):
+                fill_episode(replay, first=10 * episode + 1, length=8, terminal=episode % 2 == 0)
+    for _ in range(10):
+        expected, *others = (r.sample(importance_exponent=0.6) for r in (host, packed, device))
+        for batch in others:
+            assert batch.window is None and expected.window is None
+            for name in ("observations", "next_observations"):
+                assert np.array_equal(np.asarray(getattr(batch, name)), getattr(expected, name))
+            for name in ("indices", "actions", "rewards", "terminals", "discounts", "weights"):
+                assert np.array_equal(getattr(batch, name), getattr(expected, name)), name
+        for replay in (host, packed, device):
+            replay.update_priorities(expected.indices, np.arange(32) / 8.0)
+    assert_walked(host, host.sample(importance_exponent=0.6).indices.copy())
+
+
+def test_prioritized_n_step_state_round_trip_through_a_checkpoint(tmp_path) -> None:
+    """Saved and loaded by the checkpoint store as a run does (the arrays chunk by chunk,
+    the state with torch's weights-only loader): the same next ten minibatches."""
+    from dqnlab.run.checkpoints import CheckpointStore
+
+    replay = prioritized_memory(n_step=3)
+    rng = np.random.default_rng(7)
+    for _ in range(5):
+        batch = replay.sample(importance_exponent=0.5)
+        replay.update_priorities(batch.indices, rng.exponential(size=32))
+    CheckpointStore(tmp_path).save(1, {"replay": replay.state_dict()}, replay.arrays, None, "f")
+    resumed = ReplayMemory(
+        50, (2, 2), np.uint8, 4, 32, seed=99, n_step=3, discount=0.9,
+        sampling="prioritized", priority_exponent=0.5, priority_epsilon=0.25,
+    )  # fmt: skip
+    loaded = CheckpointStore(tmp_path).latest("f", into=resumed.arrays)
+    assert loaded is not None
+    resumed.load_state_dict(loaded.state["replay"])
+    assert resumed.priorities is not None and replay.priorities is not None
+    assert resumed.priorities.max_priority == replay.priorities.max_priority
+    for step in range(10):
+        a, b = replay.sample(importance_exponent=0.5), resumed.sample(importance_exponent=0.5)
+        for name in ("indices", "weights", "rewards", "discounts", "observations"):
+            assert np.array_equal(getattr(a, name), getattr(b, name)), name
+        errors = rng.exponential(size=32)
+        for r in (replay, resumed):
+            r.update_priorities(a.indices, errors)
+            r.add(frame(step), 0, 1.0, False)
+
+
+def test_a_state_without_priorities_gives_every_valid_slot_the_largest() -> None:
+    uniform = memory(capacity=50, batch=32)
+    fill_episode(uniform, first=1, length=30)
+    replay = ReplayMemory(50, (2, 2), np.uint8, 4, 32, seed=0, sampling="prioritized")
+    for name, array in uniform.arrays.items():
+        replay.arrays[name][...] = array
+    replay.load_state_dict(uniform.state_dict())
+    assert replay.priorities is not None
+    valid = replay._valid(np.arange(50))
+    assert (replay.priorities.tree.leaves > 0).tolist() == valid.tolist()

@@ -41,3 +41,24 @@ def test_a_state_loaded_into_a_fresh_one_steps_the_same(cartpole) -> None:
         assert torch.equal(a, b)
     first.close()
     second.close()
+
+
+def test_the_replay_is_built_with_the_configs_n_step_and_sampling(cartpole) -> None:
+    config = dataclasses.replace(
+        cartpole,
+        replay_capacity=300,
+        n_step=3,
+        discount=0.9,
+        replay_sampling="prioritized",
+        priority_exponent=0.5,
+        priority_epsilon=0.01,
+    )
+    state = TrainingState(config, torch.device("cpu"))
+    replay = state.replay
+    assert (replay.n_step, replay.discount) == (3, 0.9)
+    assert replay.priorities is not None
+    assert (replay.priorities.exponent, replay.priorities.epsilon) == (0.5, 0.01)
+    state.close()
+    uniform = TrainingState(dataclasses.replace(cartpole, replay_capacity=300), torch.device("cpu"))
+    assert uniform.replay.priorities is None and uniform.replay.n_step == 1
+    uniform.close()

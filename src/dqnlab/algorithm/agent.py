@@ -25,6 +25,7 @@ from dqnlab.algorithm.optim import build_optimizer
 from dqnlab.algorithm.replay import Batch
 from dqnlab.config import Config
 from dqnlab.envs import Environment
+from dqnlab.errors import ConfigError
 
 
 def epsilon_at(step: int, config: Config) -> float:
@@ -89,10 +90,36 @@ class Agent:
             np.dtype(observation_dtype) if observation_dtype is not None else None
         )
         self.action_names = list(action_names) if action_names is not None else None
+        if config.replay_sampling == "prioritized" and config.loss != "auto":
+            self._check_priorities()
         self._optimizer_step: Callable[[], object] = self.optimizer.step
         if compile_update:
             self._loss_and_backward = torch.compile(self._loss_and_backward)  # type: ignore[method-assign]
             self._optimizer_step = torch.compile(self.optimizer.step)
+
+    def _check_priorities(self) -> None:
+        """A user's loss part must give priorities for prioritized replay: ask it once, on a
+        minibatch of zeros, before the run starts rather than at its first update."""
+        if self.input_shape is None or self.observation_dtype is None:
+            return
+        zeros = torch.zeros((2, *self.input_shape), dtype=_torch_dtype(self.observation_dtype))
+        zeros = zeros.to(self.device)
+        scalars = torch.zeros(2, device=self.device)
+        batch = Transitions(
+            observations=zeros,
+            actions=scalars.long(),
+            rewards=scalars,
+            terminals=scalars,
+            discounts=torch.full((2,), self.config.discount, device=self.device),
+            next_observations=zeros,
+        )
+        with torch.no_grad():
+            output = self.loss(self.online, self.target, batch)
+        if output.priorities is None:
+            raise ConfigError(
+                f"loss = {self.config.loss!r} gives no priorities, which replay_sampling = "
+                '"prioritized" needs'
+            )
 
     def act(self, stacked_observation: np.ndarray, epsilon: float, training: bool = False) -> int:
         """Epsilon-greedy on one stacked observation (`epsilon_greedy`). In `training`, a
@@ -218,6 +245,10 @@ def _on_device(frames: np.ndarray | torch.Tensor, device: torch.device) -> torch
     """A batch's frames as a tensor on `device` (a no-op for frames already there)."""
     tensor = frames if isinstance(frames, torch.Tensor) else torch.from_numpy(frames)
     return tensor.to(device)
+
+
+def _torch_dtype(dtype: np.dtype) -> torch.dtype:
+    return torch.from_numpy(np.zeros(0, dtype=dtype)).dtype
 
 
 def is_image_observation(observation_shape: tuple[int, ...], dtype: np.dtype) -> bool:

@@ -51,7 +51,10 @@ class HeldOutSet:
     def draw(cls, replay: ReplayMemory, size: int, rng: np.random.Generator) -> HeldOutSet | None:
         """`size` transitions uniform with replacement (as the replay's minibatches), with
         `rng` rather than the replay's own generator, so that drawing the set changes no
-        minibatch of the run. None while the replay holds no complete transition."""
+        minibatch of the run. None while the replay holds no complete transition.
+
+        One-step transitions whatever the replay's n_step (`gather_windows`): the figure
+        is the Lua code's, r + γ max_a Q_target(s', a) of a single step."""
         if not replay.has_transition():
             return None
         indices = replay.sample_indices(size, rng)
@@ -60,7 +63,7 @@ class HeldOutSet:
         for start in range(0, size, batch_size):
             part = indices[start : start + batch_size]
             padded = np.resize(part, batch_size)  # gather takes whole minibatches
-            batch = replay.gather(padded)
+            batch = replay.gather_windows(padded)
             count = len(part)
             assert batch.window is not None
             windows.append(torch.as_tensor(batch.window[:count]).cpu().clone())

@@ -6,7 +6,16 @@ o_{t+1} is slot i+1. The last observation of every episode gets a slot of its ow
 marked `is_last`, from which no transition starts: it is the bootstrap state of a
 truncated episode and the (masked) next state of a terminal one. A network input is the
 last `history_length` observations of one episode; older slots across an `is_last`
-boundary are zeros, as at an episode start while acting (`FrameHistory`).
+boundary are zeros, as at an episode start while acting (`FrameHistory`; the buffers a
+minibatch is gathered into are `minibatch.py`'s).
+
+With `n_step` > 1, a sampled transition sums the rewards of up to n stored steps and
+bootstraps from the observation n steps on (`nstep.py`, computed when drawn). With
+`sampling = "prioritized"`, transitions are drawn in proportion to their priorities
+(`prioritized.py`), which the caller updates from their errors (`update_priorities`). The
+tree's non-zero leaves are exactly the slots a transition can start from now (`_valid`):
+each write adjusts the few whose validity it changes (`_refresh_priorities`), so a draw
+never needs rejecting, unlike Dopamine's prioritized replay (the reference note's §8.5).
 
 Memory per transition is one frame plus 10 bytes (action, reward, two flags): a 1M Atari
 replay is 7.07 GB, like the Lua code's byte tensor (TransitionTable.lua).
@@ -24,8 +33,6 @@ without it; a device copy, when there is one, stays raw.
 
 from __future__ import annotations
 
-import dataclasses
-from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -33,6 +40,10 @@ import psutil
 import torch
 
 from dqnlab.algorithm.compression import CHUNK_SLOTS, CompressedFrames, check_codec
+from dqnlab.algorithm.minibatch import Batch, Layout, MinibatchBuffers
+from dqnlab.algorithm.nstep import discount_powers, n_step_targets, window_steps
+from dqnlab.algorithm.prioritized import ProportionalPriorities, importance_weights
+from dqnlab.config import CHOICES
 from dqnlab.errors import ResourceError
 
 _SLOT_OVERHEAD_BYTES = 4 + 4 + 1 + 1  # action int32, reward float32, terminal, is_last
@@ -69,24 +80,7 @@ def check_memory(required_bytes: int, what: str) -> None:
         )
 
 
-@dataclass
-class Batch:
-    """Views into the memory's reusable sampling buffers: valid until the next sample.
-
-    The frames are NumPy arrays, or tensors already on the device when the memory keeps
-    its frames there."""
-
-    observations: np.ndarray | torch.Tensor  # (batch, history, *frame_shape)
-    actions: np.ndarray  # (batch,) int64
-    rewards: np.ndarray  # (batch,) float32
-    terminals: np.ndarray  # (batch,) float32, 1.0 where the next state is terminal
-    next_observations: np.ndarray | torch.Tensor  # (batch, history, *frame_shape)
-    # (batch, history + 1, *frame_shape) when both are views of it (observations the first
-    # `history` frames, next_observations the last): a device copies it once, not twice.
-    window: np.ndarray | torch.Tensor | None = None
-    indices: np.ndarray | None = None  # (batch,) int64: the sampled slots
-    discounts: np.ndarray | None = None  # (batch,) float32: the bootstrap's discount
-    weights: np.ndarray | None = None  # (batch,) float32: importance weights (prioritized)
+SAMPLINGS = CHOICES["replay_sampling"]
 
 
 class ReplayMemory:
@@ -103,13 +97,26 @@ class ReplayMemory:
         compression: str = "none",
         expected_frame_bytes: float | None = None,
         chunk_slots: int = CHUNK_SLOTS,
+        n_step: int = 1,
+        discount: float = 0.99,
+        sampling: str = "uniform",
+        priority_exponent: float = 0.6,
+        priority_epsilon: float = 1e-6,
     ) -> None:
         """`device`: also keep the frames there and gather minibatches there (see the
         module's docstring). `pin_memory`: the host minibatch buffer in page-locked memory,
         for faster copies to a GPU (needs CUDA). `compression`: a codec for the host frames
         (ignored for vector observations: `compresses`); `expected_frame_bytes`: the
         measured compressed size of one of this game's frames, which the memory check may
-        count on (without it, the check asks for the raw size: see `_check_projection`)."""
+        count on (without it, the check asks for the raw size: see `_check_projection`).
+        `n_step` and `discount` (γ; 0.99 is the Config's default): the returns a sampled
+        transition sums (`dqnlab.algorithm.nstep`). `sampling`: "uniform" or
+        "prioritized", with `priority_exponent` (α) and `priority_epsilon` (ε)
+        (`dqnlab.algorithm.prioritized`)."""
+        if n_step < 1:
+            raise ValueError(f"n_step = {n_step} must be at least 1")
+        if sampling not in SAMPLINGS:
+            raise ValueError(f"sampling = {sampling!r} is not one of: {', '.join(SAMPLINGS)}")
         frame_dtype = np.dtype(frame_dtype)
         self.compressed = compresses(compression, tuple(frame_shape))
         self.frame_shape = tuple(frame_shape)
@@ -122,6 +129,9 @@ class ReplayMemory:
         self.capacity = capacity
         self.history_length = history_length
         self.batch_size = batch_size
+        self.n_step = n_step
+        self.discount = discount
+        self._powers = discount_powers(discount, n_step)
         self.frames: np.ndarray | CompressedFrames
         if self.compressed:
             self.frames = CompressedFrames(
@@ -137,48 +147,39 @@ class ReplayMemory:
         self.size = 0
         self.writes = 0  # slots written since creation: tells a checkpoint what changed
         self.rng = np.random.default_rng(seed)
-        # Sampling buffers, reused by every call: a window of history + 1 slots per sample.
-        window = history_length + 1
-        self._offsets = np.arange(-history_length + 1, 2, dtype=np.int64)
-        self._window = np.zeros((batch_size, window, *frame_shape), dtype=frame_dtype)
-        if pin_memory:
-            pinned = torch.from_numpy(self._window).pin_memory()
-            self._window = pinned.numpy()
-        self._slots = np.zeros((batch_size, window), dtype=np.int64)
-        self._mask = np.ones((batch_size, window), dtype=np.bool_)
-        # torch views of the same memory: index_select copies the windows on every core,
-        # twice as fast as np.take on 2 cores (np.take with `out` and mode "raise" even
-        # buffers the whole copy).
+        self._offsets = np.arange(-history_length + 1, 2, dtype=np.int64)  # a window
+        self._history_offsets = self._offsets[:-1]
         self._frames_view = None if self.compressed else torch.from_numpy(self.frames)
-        self._window_view = torch.from_numpy(self._window).view(-1, *frame_shape)
-        self._window_frames = self._window.reshape(-1, *frame_shape)  # a view
-        self._slots_view = torch.from_numpy(self._slots).view(-1)
-        self._batch = Batch(
-            observations=self._window[:, :history_length],
-            actions=np.zeros(batch_size, dtype=np.int64),
-            rewards=np.zeros(batch_size, dtype=np.float32),
-            terminals=np.zeros(batch_size, dtype=np.float32),
-            next_observations=self._window[:, 1:],
-            window=self._window,
-        )
         self.device = device
-        if device is not None:  # the same buffers, on the device
-            torch_dtype = torch.from_numpy(self._window[:0]).dtype
+        if device is not None:  # a copy of the frames, to gather minibatches there
+            torch_dtype = torch.from_numpy(np.zeros(0, dtype=frame_dtype)).dtype
             self._device_frames = torch.zeros(
                 (capacity, *frame_shape), dtype=torch_dtype, device=device
             )
-            self._device_window = torch.zeros(self._window.shape, dtype=torch_dtype, device=device)
-            self._device_slots = torch.zeros(self._slots.size, dtype=torch.int64, device=device)
-            # Kept frames of each window, shaped to broadcast over a frame.
-            self._device_mask = torch.zeros(
-                (batch_size, window, *[1] * len(frame_shape)), dtype=torch.uint8, device=device
-            )
-            self._batch = dataclasses.replace(
-                self._batch,
-                observations=self._device_window[:, :history_length],
-                next_observations=self._device_window[:, 1:],
-                window=self._device_window,
-            )
+        # Sampling buffers, reused by every call: room for the widest transition, of which
+        # one-step windows take the first batch_size * (history + 1) frames.
+        history = history_length
+        self._buffers = MinibatchBuffers(
+            self.frame_shape, frame_dtype, history, batch_size,
+            history + 1 if n_step == 1 else 2 * history, discount, device, pin_memory,
+        )  # fmt: skip
+        self._one_step = self._buffers.layout(history + 1, next_column=1)
+        self._n_step = (
+            self._one_step
+            if n_step == 1
+            else self._buffers.layout(2 * history, next_column=history)
+        )
+        self.priorities: ProportionalPriorities | None = None
+        if sampling == "prioritized":
+            self.priorities = ProportionalPriorities(capacity, priority_exponent, priority_epsilon)
+            self._uniforms = np.zeros(batch_size)
+            self._sampled = np.zeros(batch_size, dtype=np.int64)
+            self._probabilities = np.zeros(batch_size)
+            self._n_step.batch.weights = np.ones(batch_size, dtype=np.float32)
+            # The slots whose validity writing slot 0 can change (`_refresh_priorities`).
+            self._refresh_offsets = np.arange(-n_step, history_length, dtype=np.int64)
+        # Where the ring was at the last prioritized draw: what `update_priorities` skips.
+        self._sampled_writes, self._sampled_position = 0, 0
 
     @property
     def bytes_per_transition(self) -> float:
@@ -226,22 +227,58 @@ class ReplayMemory:
         self.position = (slot + 1) % self.capacity
         self.size = min(self.size + 1, self.capacity)
         self.writes += 1
+        if self.priorities is not None:
+            self._refresh_priorities(slot)
         if sealed is not None and self.frames.sealed_slots != sealed:  # type: ignore[union-attr]
             self._check_projection()
+
+    def _refresh_priorities(self, slot: int) -> None:
+        """Keep the non-zero leaves exactly the valid slots (`_valid`) after writing `slot`.
+
+        A write can change the validity of these slots alone: the one written (now the
+        newest: no next state yet), the n_step before it (a window may now end in it: valid
+        from now on, at the largest priority, Schaul et al. 2016, Algorithm 1) and, once
+        the ring is full, the history_length - 1 after it (the oldest: their histories now
+        reach back into the slot just overwritten). A few leaves, set in one tree update.
+        """
+        assert self.priorities is not None
+        slots = (slot + self._refresh_offsets) % self.capacity
+        leaves = self.priorities.tree.leaves[slots]
+        wanted = np.where(leaves > 0.0, leaves, self.priorities.new_leaf)
+        wanted[~self._valid(slots)] = 0.0
+        changed = wanted != leaves
+        if changed.any():
+            self.priorities.tree.set(slots[changed], wanted[changed])
+
+    def _rebuild_priorities(self) -> None:
+        """Every valid slot at the largest priority, the others 0 (a state saved without
+        priorities)."""
+        assert self.priorities is not None
+        valid = self._valid(np.arange(self.capacity))
+        self.priorities.tree.load(np.where(valid, self.priorities.new_leaf, 0.0))
 
     # Sampling -------------------------------------------------------------------------
 
     def _valid(self, slots: np.ndarray) -> np.ndarray:
-        """Which slots can start a sampled transition: o_{t+1} must be stored already."""
-        if self.size < self.capacity:  # slots 0..size-1 written, size-1 the newest
-            return ~self.is_last[slots] & (slots < self.size - 1)
-        newest = (self.position - 1) % self.capacity
-        # The oldest slots' histories reach back into overwritten (newest) data.
+        """Which slots can start a sampled transition: not an episode's last observation,
+        its next state (slot t + m, `window_steps`) stored already, and, once the ring is
+        full, its history not reaching back into overwritten (newest) data."""
+        steps = (
+            1
+            if self.n_step == 1
+            else window_steps(self.terminals, self.is_last, slots, self.n_step)
+        )
+        # Rank from the oldest slot: 0 the oldest (the next overwritten), capacity - 1 the
+        # newest. Before the ring is full, the slots not written yet rank first.
         age = (slots - self.position) % self.capacity
-        return ~self.is_last[slots] & (slots != newest) & (age >= self.history_length - 1)
+        valid = ~self.is_last[slots] & (age + steps <= self.capacity - 1)
+        if self.size < self.capacity:  # slots 0..size-1 written, size-1 the newest
+            return valid & (slots < self.size)
+        # The oldest slots' histories reach back into overwritten (newest) data.
+        return valid & (age >= self.history_length - 1)
 
     def has_transition(self) -> bool:
-        """Whether a complete transition (o_t and o_{t+1}) is stored, so sampling can succeed."""
+        """Whether a complete transition (o_t to o_{t+m}) is stored, so sampling can succeed."""
         return bool(self._valid(np.arange(self.size)).any())
 
     def sample_indices(self, count: int, rng: np.random.Generator | None = None) -> np.ndarray:
@@ -261,42 +298,92 @@ class ReplayMemory:
                 raise RuntimeError("the replay memory holds no complete transition yet")
         return indices
 
-    def sample(self) -> Batch:
-        return self.gather(self.sample_indices(self.batch_size))
+    def sample(self, importance_exponent: float | None = None) -> Batch:
+        """A minibatch: uniform (`sample_indices`), or prioritized with importance weights
+        of exponent β = `importance_exponent` (which the caller anneals) in `weights`."""
+        if self.priorities is None:
+            return self.gather(self.sample_indices(self.batch_size))
+        if importance_exponent is None:
+            raise ValueError("prioritized sampling needs the importance exponent (beta)")
+        if not self.priorities.tree.total > 0.0:
+            raise RuntimeError("the replay memory holds no complete transition yet")
+        self.rng.random(out=self._uniforms)
+        self.priorities.sample(self._uniforms, self._sampled, self._probabilities)
+        batch = self.gather(self._sampled)
+        assert batch.weights is not None
+        # N = the slots stored; it cancels in the batch-max normalisation.
+        importance_weights(self._probabilities, self.size, importance_exponent, batch.weights)
+        self._sampled_writes, self._sampled_position = self.writes, self.position
+        return batch
+
+    def update_priorities(self, indices: np.ndarray, errors: np.ndarray | torch.Tensor) -> None:
+        """Tell the replay the errors (>= 0: |TD error|, or a per-transition loss, as the
+        caller chooses) of the transitions of the latest `sample()`: their priorities
+        become (error + ε)^α (Schaul et al. 2016, Algorithm 1 line 12). Nothing with
+        uniform sampling. Slots written since that sample are left alone (their priority
+        would belong to another transition: ray-project/ray#6534), and so are slots that
+        stopped being valid; where an index repeats, its last error counts."""
+        if self.priorities is None:
+            return
+        if isinstance(errors, torch.Tensor):
+            errors = errors.detach().to("cpu", torch.float64).numpy()
+        errors = np.asarray(errors, dtype=np.float64).reshape(-1)
+        indices = np.asarray(indices, dtype=np.int64).reshape(-1)
+        if errors.shape != indices.shape:
+            raise ValueError(f"{len(errors)} errors for {len(indices)} indices")
+        keep = self.priorities.tree.leaves[indices] > 0.0
+        written = min(self.writes - self._sampled_writes, self.capacity)
+        if written:  # the slots written since the draw hold other transitions now
+            keep &= (indices - self._sampled_position) % self.capacity >= written
+        self.priorities.update(indices[keep], errors[keep])
 
     def gather(self, indices: np.ndarray) -> Batch:
-        """Stack the histories of transitions starting at `indices` (len == batch_size)."""
+        """The transitions starting at `indices` (len == batch_size): with n_step = 1, the
+        windows of `gather_windows`; with more, n-step returns (`nstep.n_step_targets`)
+        and the histories of o_t and o_{t+m}, gathered side by side (`window` None)."""
+        if self.n_step == 1:
+            return self.gather_windows(indices)
+        layout = self._n_step
+        steps = window_steps(self.terminals, self.is_last, indices, self.n_step)
         history = self.history_length
-        raw_slots = indices[:, None] + self._offsets
-        np.remainder(raw_slots, self.capacity, out=self._slots)
-        # A frame of the window is kept only if no episode ended between it and the
-        # transition's own observation (window position history - 1).
-        mask = self._mask
-        mask[:, history - 1 :] = True
-        for j in range(history - 2, -1, -1):
-            mask[:, j] = mask[:, j + 1] & ~self.is_last[self._slots[:, j]]
-            if self.size < self.capacity:  # before the first write there is nothing
-                mask[:, j] &= raw_slots[:, j] >= 0
-        if self.device is None:
-            if isinstance(self.frames, CompressedFrames):
-                self.frames.gather(self._slots_view.numpy(), self._window_frames)
-            else:
-                assert self._frames_view is not None
-                torch.index_select(self._frames_view, 0, self._slots_view, out=self._window_view)
-            if not mask.all():
-                self._window[~mask] = 0
-        else:
-            self._device_slots.copy_(self._slots_view)
-            frames = self._device_window.view(-1, *self.frame_shape)
-            torch.index_select(self._device_frames, 0, self._device_slots, out=frames)
-            if not mask.all():
-                self._device_mask.view(mask.shape).copy_(torch.from_numpy(mask))
-                self._device_window.mul_(self._device_mask)
-        batch = self._batch
+        raw_slots = np.empty((len(indices), 2 * history), dtype=np.int64)
+        raw_slots[:, :history] = indices[:, None] + self._history_offsets
+        raw_slots[:, history:] = (indices + steps)[:, None] + self._history_offsets
+        self._gather_frames(layout, raw_slots)
+        batch = layout.batch
+        assert batch.indices is not None and batch.discounts is not None
+        batch.indices[:] = indices
+        batch.actions[:] = self.actions[indices]
+        n_step_targets(
+            self.rewards, self.terminals, indices, steps, self._powers,
+            batch.rewards, batch.terminals, batch.discounts,
+        )  # fmt: skip
+        return batch
+
+    def gather_windows(self, indices: np.ndarray) -> Batch:
+        """One-step transitions starting at `indices` (len == batch_size), whatever n_step:
+        windows of history + 1 slots (s the first `history` frames, s' the last), r_t,
+        whether s' is terminal, γ. Nature's Fig. 2 (`heldout.py`) measures these."""
+        layout = self._one_step
+        self._gather_frames(layout, indices[:, None] + self._offsets)
+        batch = layout.batch
+        assert batch.indices is not None
+        batch.indices[:] = indices
         batch.actions[:] = self.actions[indices]
         batch.rewards[:] = self.rewards[indices]
         batch.terminals[:] = self.terminals[indices]
         return batch
+
+    def _gather_frames(self, layout: Layout, raw_slots: np.ndarray) -> None:
+        source: torch.Tensor | CompressedFrames
+        if self.device is not None:
+            source = self._device_frames
+        elif isinstance(self.frames, CompressedFrames):
+            source = self.frames
+        else:
+            assert self._frames_view is not None
+            source = self._frames_view
+        self._buffers.gather(layout, raw_slots, source, self.is_last, self.size == self.capacity)
 
     def upload(self) -> None:
         """Copy the host frames to the device (after a checkpoint was loaded into them)."""
@@ -346,19 +433,30 @@ class ReplayMemory:
         }
 
     def state_dict(self) -> dict[str, Any]:
-        """The small state; the arrays are saved separately (`arrays`)."""
-        return {
+        """The small state; the arrays are saved separately (`arrays`). With prioritized
+        sampling, the priorities too (8 bytes a slot), so a resumed run draws the same
+        minibatches."""
+        state: dict[str, Any] = {
             "position": self.position,
             "size": self.size,
             "writes": self.writes,
             "rng": self.rng.bit_generator.state,
         }
+        if self.priorities is not None:
+            state["priorities"] = self.priorities.state_dict()
+        return state
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         self.position = int(state["position"])
         self.size = int(state["size"])
         self.writes = int(state["writes"])
         self.rng.bit_generator.state = state["rng"]
+        if self.priorities is not None:
+            if "priorities" in state:
+                self.priorities.load_state_dict(state["priorities"])
+            else:
+                self._rebuild_priorities()
+        self._sampled_writes, self._sampled_position = self.writes, self.position
 
 
 class FrameHistory:

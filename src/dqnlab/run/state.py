@@ -73,6 +73,11 @@ class TrainingState:
             pin_memory=device.type == "cuda" and on_device is None,
             compression=config.replay_compression,
             expected_frame_bytes=expected_frame_bytes(config.replay_compression, config.env),
+            n_step=config.n_step,
+            discount=config.discount,
+            sampling=config.replay_sampling,
+            priority_exponent=config.priority_exponent,
+            priority_epsilon=config.priority_epsilon,
         )
         if replay is None and config.replay_compression != "none" and not self.replay.compressed:
             print(
@@ -157,11 +162,7 @@ class TrainingState:
             sampled = perf_counter()
             loss, priorities = self.agent.update(batch)
             if prioritized:
-                if priorities is None:
-                    raise DqnlabError(
-                        f"loss = {config.loss!r} gives no priorities, which replay_sampling "
-                        '= "prioritized" needs'
-                    )
+                assert batch.indices is not None and priorities is not None  # Agent checks
                 self.replay.update_priorities(batch.indices, priorities)
             if self.check_every_update and not torch.isfinite(loss):
                 raise TrainingDiverged(
