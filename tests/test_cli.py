@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from dqnlab.tools.video import video_file_name
+from dqnlab.analysis.video import video_file_name
 
 
 def dqnlab(*args: str, cwd: Path | None = None) -> subprocess.CompletedProcess[str]:

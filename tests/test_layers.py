@@ -1,5 +1,5 @@
-"""The package's layers: imports point down (envs < algorithm < run < tools < cli), and
-the modules the evaluation's worker processes import never import torch."""
+"""The package's layers: imports point down (envs < algorithm < run < analysis < sweeps <
+bench < cli), and the modules the evaluation's worker processes import never import torch."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ import dqnlab
 
 PACKAGE = Path(dqnlab.__file__).parent
 # A module's layer, from its path; a module may import its own layer and those below.
-LAYERS = ["errors", "config", "envs", "algorithm", "run", "tools", "cli"]
+LAYERS = ["errors", "config", "envs", "algorithm", "run", "analysis", "sweeps", "bench", "cli"]
 
 
 def _layer(module: str) -> int:

@@ -15,7 +15,7 @@ from dqnlab.config import DEFAULT_EVALUATION_SEED
 from dqnlab.errors import DqnlabError
 
 if TYPE_CHECKING:
-    from dqnlab.tools.report.aggregate import AggregateSettings
+    from dqnlab.analysis.report.aggregate import AggregateSettings
 
 app = typer.Typer(
     add_completion=False,
@@ -169,7 +169,7 @@ def evaluate(
             run_dir, checkpoint, episodes, seed, resolve_device(device)
         )
     else:
-        from dqnlab.tools.video import filmed_final_evaluation
+        from dqnlab.analysis.video import filmed_final_evaluation
 
         recording, network = filmed_final_evaluation(
             run_dir, checkpoint, episodes, seed, resolve_device(device), video, video_format
@@ -266,7 +266,7 @@ def bench(
 ) -> None:
     """Measure training and evaluation throughput, the update, and replay memory use (with
     --sweep: what Ray adds to a sweep's runs, and how soon a lost node's run trains again)."""
-    from dqnlab.tools.bench import run_benchmark
+    from dqnlab.bench.throughput import run_benchmark
 
     if compression_scan is not None:
         _compression_scan(compression_scan, scan_steps)
@@ -274,7 +274,7 @@ def bench(
     if sweep:
         import tempfile
 
-        from dqnlab.tools.sweep_bench import run_sweep_benchmark
+        from dqnlab.bench.sweep import run_sweep_benchmark
 
         with tempfile.TemporaryDirectory(prefix="dqnlab-sweep-bench-") as directory:
             figures = run_sweep_benchmark(
@@ -304,8 +304,8 @@ def bench(
 def _compression_scan(path: Path, steps: int) -> None:
     import csv
 
-    from dqnlab.tools.compression_bench import scan
-    from dqnlab.tools.report.scores import load_reference_scores
+    from dqnlab.analysis.report.scores import load_reference_scores
+    from dqnlab.bench.compression import scan
 
     games = sorted(load_reference_scores())
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -372,7 +372,7 @@ def ablate(
     from dqnlab.config import parse_overrides
     from dqnlab.envs import check_env_name, is_atari
     from dqnlab.run.rundir import default_sweep_dir
-    from dqnlab.tools.ablate import (
+    from dqnlab.sweeps.ablate import (
         check_sweep_dir,
         default_jobs,
         parse_variation,
@@ -430,7 +430,7 @@ def _ray_connection(address: str):  # noqa: ANN202 - ray is imported only when n
     """Connected to Ray for the block; a local cluster started here ends with it."""
     import contextlib
 
-    from dqnlab.tools.cluster import connect
+    from dqnlab.sweeps.cluster import connect
 
     @contextlib.contextmanager
     def connected():  # noqa: ANN202
@@ -524,8 +524,8 @@ def sweep(
         env, games, preset, seeds, seed, vary or [], set_ or [], steps, sweep_dir,
         cpus_per_run, gpus_per_run, memory_per_run, max_retries,
     )  # fmt: skip
-    from dqnlab.tools.cluster import node_resources
-    from dqnlab.tools.sweep import check_resources, run_sweep_on_ray
+    from dqnlab.sweeps.cluster import node_resources
+    from dqnlab.sweeps.sweep import check_resources, run_sweep_on_ray
 
     with _ray_connection(address):
         check_resources(resources, node_resources())
@@ -567,7 +567,7 @@ def _plan_sweep_command(
     from dqnlab.config import parse_overrides
     from dqnlab.envs import check_env_name
     from dqnlab.run.rundir import default_sweep_dir
-    from dqnlab.tools.sweep import (
+    from dqnlab.sweeps.sweep import (
         check_sweep_dir,
         game_set,
         parse_variation,
@@ -610,7 +610,7 @@ def status(
 ) -> None:
     """Where a sweep's runs (or one run) stand, from the run directories alone: no Ray
     needed, from any machine that sees the storage."""
-    from dqnlab.tools.status import collect_status, format_status_table, status_json
+    from dqnlab.analysis.status import collect_status, format_status_table, status_json
 
     statuses = collect_status(path)
     for line in format_status_table(statuses):
@@ -648,7 +648,7 @@ def report(
         ),
     ] = "human",
     # The defaults of aggregate.AggregateSettings, not imported here (the report package
-    # imports torch); tests/tools/report/test_aggregate.py checks that they agree.
+    # imports torch); tests/analysis/report/test_aggregate.py checks that they agree.
     bootstrap_reps: Annotated[
         int, typer.Option(help="Repetitions of the aggregates' stratified bootstrap")
     ] = 10_000,
@@ -673,7 +673,7 @@ def report(
     Writes results.md, results.csv, summary.csv, curves-GAME.png/.svg, aggregates.csv,
     aggregates.png/.svg, performance-profiles.png/.svg, probability-of-improvement.csv and
     q-values/RUN/ (a figure per frame, overview.png, q_values.csv)."""
-    from dqnlab.tools.report.aggregate import AggregateSettings
+    from dqnlab.analysis.report.aggregate import AggregateSettings
 
     aggregate = AggregateSettings(baseline, bootstrap_reps, bootstrap_seed)  # checked first
     if frames < 0:
@@ -697,7 +697,7 @@ def _report(
     reference: str = "dopamine",
     aggregate: AggregateSettings | None = None,
 ) -> None:
-    from dqnlab.tools.report import best_network_evaluator, format_table, write_report
+    from dqnlab.analysis.report import best_network_evaluator, format_table, write_report
 
     torch_device = resolve_device(device)
     written = write_report(
@@ -754,8 +754,8 @@ def inspect(
     overview.png, q_values.csv and the inputs. worst is the network of the lowest
     periodic evaluation after the first quarter of training; steps need
     eval_networks_kept = "all"."""
+    from dqnlab.analysis.inspection.qvalues import inspect_run, parse_checkpoints
     from dqnlab.run.rundir import inspect_dir
-    from dqnlab.tools.inspection import inspect_run, parse_checkpoints
 
     if frames <= 0:
         raise DqnlabError(f"--frames {frames} must be positive")
