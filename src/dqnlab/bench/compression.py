@@ -24,7 +24,7 @@ import torch
 
 from dqnlab.algorithm.compression import CHUNK_SLOTS, CompressedFrames
 from dqnlab.algorithm.replay import ReplayMemory
-from dqnlab.bench.throughput import measure_training
+from dqnlab.bench.measure import measure_training, median_sample_us
 from dqnlab.config import Config, resolve_config
 from dqnlab.envs import make_env
 from dqnlab.run.checkpoints import CheckpointStore
@@ -50,15 +50,6 @@ def fill_by_random_play(
         else:
             observation = following.copy()
     env.close()
-
-
-def _median_sample_us(replay: ReplayMemory, repeats: int) -> float:
-    timings = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        replay.sample()
-        timings.append(time.perf_counter() - start)
-    return float(np.median(timings) * 1e6)
 
 
 def _window_bytes(replay: ReplayMemory, indices: np.ndarray) -> bytes:
@@ -136,8 +127,8 @@ def measure_compression(
     figures["compression_ms_per_chunk"] = (
         1e3 * frames.chunk_seconds * CHUNK_SLOTS / max(frames.sealed_slots, 1)
     )
-    figures["compression_sample_us_raw"] = _median_sample_us(raw, 1000)
-    figures["compression_sample_us"] = _median_sample_us(packed, 1000)
+    figures["compression_sample_us_raw"] = median_sample_us(raw, 1000)
+    figures["compression_sample_us"] = median_sample_us(packed, 1000)
     figures["compression_sample_us_added"] = (
         figures["compression_sample_us"] - figures["compression_sample_us_raw"]
     )

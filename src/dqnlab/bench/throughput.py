@@ -19,12 +19,14 @@ import torch
 
 from dqnlab import __version__
 from dqnlab.algorithm.replay import ReplayMemory
+from dqnlab.bench.compression import measure_compression
+from dqnlab.bench.measure import measure_training, median_sample_us
 from dqnlab.bench.sb3 import peer_available, run_sb3_dqn
 from dqnlab.config import resolve_config
 from dqnlab.errors import DqnlabError
 from dqnlab.run.lockstep import play_games
 from dqnlab.run.play import play
-from dqnlab.run.state import TIMED_PARTS, TrainingState, replay_device
+from dqnlab.run.state import TrainingState, replay_device
 
 
 def _resident_bytes() -> int:
@@ -36,19 +38,6 @@ def _fill(replay: ReplayMemory, rng: np.random.Generator) -> None:
     pool = rng.integers(0, 256, size=(64, *replay.frame_shape), dtype=np.uint8)
     for i in range(replay.capacity):
         replay.add(pool[i % 64], int(i % 4), 0.0, False)
-
-
-def measure_training(training: TrainingState, steps: int) -> tuple[float, dict[str, float]]:
-    """Frames/s over `steps` training steps, and the fraction of time in each part."""
-    frames, start = training.env.frames, time.perf_counter()
-    training.seconds = dict.fromkeys(training.seconds, 0.0)
-    for _ in range(steps):
-        training.advance()
-    float(training.loss_sum)  # wait for the device
-    seconds = time.perf_counter() - start
-    parts = {name: training.seconds[name] / seconds for name in TIMED_PARTS}
-    parts["other"] = 1.0 - sum(parts.values())  # the loop's own overhead
-    return (training.env.frames - frames) / seconds, parts
 
 
 def run_benchmark(
@@ -109,12 +98,7 @@ def run_benchmark(
         replay_capacity
     )
     figures["peak_resident_bytes"] = _resident_bytes()
-    timings = []
-    for _ in range(2000):
-        start = time.perf_counter()
-        replay.sample()
-        timings.append(time.perf_counter() - start)
-    figures["sample_us"] = float(np.median(timings) * 1e6)
+    figures["sample_us"] = median_sample_us(replay, 2000)
 
     # The update alone, on one sampled minibatch.
     training = TrainingState(config, device, replay=replay)
@@ -183,8 +167,6 @@ def run_benchmark(
     training.close()
     del replay, training
     if compression_fill_steps:
-        from dqnlab.bench.compression import measure_compression  # it imports this module
-
         figures.update(
             measure_compression(
                 env,
