@@ -754,7 +754,8 @@ def inspect(
     overview.png, q_values.csv and the inputs. worst is the network of the lowest
     periodic evaluation after the first quarter of training; steps need
     eval_networks_kept = "all"."""
-    from dqnlab.analysis.inspection.qvalues import inspect_run, parse_checkpoints
+    from dqnlab.analysis.inspection.qvalues import parse_checkpoints
+    from dqnlab.analysis.inspection.write import inspect_run
     from dqnlab.run.rundir import inspect_dir
 
     if frames <= 0:

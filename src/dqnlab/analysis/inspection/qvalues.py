@@ -1,12 +1,12 @@
-"""Q-value inspection: what the run's networks think of the same frames.
+"""The data of a Q-value inspection: what the run's networks think of the same frames.
 
 The seed paper (Roderick et al. 2017, "Implementing the Deep Q-Network", figure of
 Q-values) shows the Q-values of the best network and of a network that performed poorly
-late in training on the same Breakout frames. `inspect_run` does that for any run: it
+late in training on the same Breakout frames. `compare_networks` does that for any run: it
 picks frames from one evaluation game of the best network, or takes stacked network
-inputs saved earlier, and writes per frame a figure (the screen and a grouped bar chart
-of each network's Q-value per action), `q_values.csv` and `observations.npy`, which a
-later inspection can take again to compare other networks on exactly those frames.
+inputs saved earlier (an earlier inspection's `observations.npy`, which `write.py` saves),
+and gives each network's Q-value per action on them. No figures, no files: `figures.py`
+draws an `Inspection`, `write.py` writes it.
 
 Frames are picked from the first game the best network plays under the evaluation
 protocol (`eval_epsilon`, random no-op starts, games of at most
@@ -18,7 +18,6 @@ every screen of a long game would take 100 kB a step).
 
 from __future__ import annotations
 
-import csv
 import math
 from collections import Counter
 from collections.abc import Callable, Iterable, Sequence
@@ -29,7 +28,6 @@ import numpy as np
 import torch
 
 from dqnlab.algorithm.agent import Agent
-from dqnlab.analysis.inspection.figures import frame_figure, overview_figure
 from dqnlab.config import Config, derive_seeds
 from dqnlab.envs import Environment, make_env
 from dqnlab.envs.atari import AtariEnv
@@ -41,15 +39,9 @@ from dqnlab.run.play import EvaluationResult, play
 CHECKPOINT_NAMES = ("best", "worst")
 DEFAULT_FRAMES = 8
 DEFAULT_MAX_GAME_STEPS = 2_000  # about 2 minutes of Atari play at 4 frames a step
+# The inputs an inspection saves (`write.py`) and takes again with their screens.
 OBSERVATIONS_FILE = "observations.npy"
 SCREENS_FILE = "screens.npy"
-Q_VALUES_FILE = "q_values.csv"
-OVERVIEW_FILE = "overview.png"
-OVERVIEW_MAX_FRAMES = 16  # a row per frame: more would make an unreadably tall image
-CSV_COLUMNS = (
-    "frame", "network", "checkpoint_step", "eval_mean", "action_index", "action_name",
-    "q_value", "is_argmax",
-)  # fmt: skip
 
 
 @dataclass(frozen=True)
@@ -71,7 +63,8 @@ class InspectedNetwork:
 
 @dataclass
 class Inspection:
-    """The Q-values of several networks on the same frames, and the files written."""
+    """The Q-values of several networks on the same frames, and the files written
+    (`write.write_inspection` sets their paths)."""
 
     env: str
     action_names: list[str]
@@ -82,7 +75,7 @@ class Inspection:
     q_values: np.ndarray  # (networks, frames, actions) float32
     note: str  # where the frames come from
     figure_paths: list[Path] = field(default_factory=list)  # one per frame
-    overview_path: Path | None = None  # None when there are more than OVERVIEW_MAX_FRAMES
+    overview_path: Path | None = None  # None above write.OVERVIEW_MAX_FRAMES frames
     csv_path: Path | None = None
     observations_path: Path | None = None
     screens_path: Path | None = None
@@ -289,9 +282,8 @@ def load_observations(
 # Q-values ------------------------------------------------------------------------------
 
 
-def inspect_run(
+def compare_networks(
     run_dir: Path,
-    out_dir: Path,
     *,
     frames: int = DEFAULT_FRAMES,
     checkpoints: Sequence[str | int] = CHECKPOINT_NAMES,
@@ -300,13 +292,11 @@ def inspect_run(
     device: torch.device | None = None,
     max_game_steps: int = DEFAULT_MAX_GAME_STEPS,
 ) -> Inspection:
-    """Compare the Q-values of the run's `checkpoints` ("best", "worst", or steps of its
-    periodic evaluations) on `frames` frames of the best network's first evaluation game
+    """The Q-values of the run's `checkpoints` ("best", "worst", or steps of its periodic
+    evaluations) on `frames` frames of the best network's first evaluation game
     (`pick_frames`; `seed` seeds the game), or on the stacked inputs saved in the .npy
     file `observations` (then `frames` is ignored, and a `screens.npy` beside it with one
-    screen per input is shown as their screens). Writes into `out_dir` a figure per frame
-    (frame-000.png, ...; older ones removed), an overview of up to 16 frames, q_values.csv,
-    observations.npy and, for Atari, screens.npy."""
+    screen per input is taken as their screens)."""
     device = device or torch.device("cpu")
     config = rundir.load_run_config(run_dir)  # a clear error if RUN_DIR is not a run
     paths = [(name, network_path(run_dir, name, config)) for name in _checked_names(checkpoints)]
@@ -352,7 +342,7 @@ def inspect_run(
                 raise DqnlabError(f"{path} was trained on {network_config.env}, not {config.env}")
         networks.append(network)
         q_values.append(agent.q_values(inputs))  # eval mode, one forward pass of all frames
-    inspection = Inspection(
+    return Inspection(
         env=best_config.env,
         action_names=action_names,
         networks=networks,
@@ -362,8 +352,6 @@ def inspect_run(
         q_values=np.stack(q_values).astype(np.float32, copy=False),
         note=note,
     )
-    write_inspection(inspection, out_dir)
-    return inspection
 
 
 def _screens_beside(observations: Path, count: int) -> np.ndarray | None:
@@ -378,57 +366,3 @@ def _screens_beside(observations: Path, count: int) -> np.ndarray | None:
         return None
     fits = screens.dtype == np.uint8 and screens.ndim == 4 and screens.shape[-1] == 3
     return screens if fits and len(screens) == count else None
-
-
-# Files ---------------------------------------------------------------------------------
-
-
-def write_inspection(inspection: Inspection, out_dir: Path) -> None:
-    """Write the figures, the CSV and the inputs; their paths are set in `inspection`."""
-    out_dir.mkdir(parents=True, exist_ok=True)
-    for old in out_dir.glob("frame-*.png"):
-        old.unlink()
-    inspection.figure_paths = []
-    for frame in range(len(inspection.observations)):
-        path = out_dir / f"frame-{frame:03d}.png"
-        frame_figure(inspection, frame).savefig(path, dpi=100)
-        inspection.figure_paths.append(path)
-    overview = out_dir / OVERVIEW_FILE
-    overview.unlink(missing_ok=True)
-    inspection.overview_path = None
-    if len(inspection.observations) <= OVERVIEW_MAX_FRAMES:
-        overview_figure(inspection).savefig(overview, dpi=80)
-        inspection.overview_path = overview
-    inspection.csv_path = out_dir / Q_VALUES_FILE
-    write_q_values_csv(inspection, inspection.csv_path)
-    inspection.observations_path = out_dir / OBSERVATIONS_FILE
-    np.save(inspection.observations_path, inspection.observations, allow_pickle=False)
-    screens_path = out_dir / SCREENS_FILE
-    screens_path.unlink(missing_ok=True)
-    inspection.screens_path = None
-    if inspection.screens is not None:
-        np.save(screens_path, inspection.screens, allow_pickle=False)
-        inspection.screens_path = screens_path
-
-
-def write_q_values_csv(inspection: Inspection, path: Path) -> None:
-    """A row per frame, network and action; Q-values written exactly (float32 round-trips)."""
-    greedy = inspection.greedy_actions
-    with path.open("w", newline="") as handle:
-        writer = csv.writer(handle)
-        writer.writerow(CSV_COLUMNS)
-        for frame in range(inspection.q_values.shape[1]):
-            for k, network in enumerate(inspection.networks):
-                for action, name in enumerate(inspection.action_names):
-                    writer.writerow(
-                        (
-                            frame,
-                            network.name,
-                            network.step,
-                            repr(network.eval_mean),
-                            action,
-                            name,
-                            repr(float(inspection.q_values[k, frame, action])),
-                            int(greedy[k, frame] == action),
-                        )
-                    )

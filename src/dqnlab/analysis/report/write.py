@@ -257,9 +257,9 @@ def inspect_report_runs(
     """The seed paper's Q-value comparison for every run of the report: its best network
     against its worst after the first quarter of training (the best alone while it has
     no worst.pt), on `frames` frames of the best network's first evaluation game, each
-    run into its own `out_dir`/RUN directory (`inspection.inspect_run`). A run that
+    run into its own `out_dir`/RUN directory (`inspection.write.inspect_run`). A run that
     cannot be inspected gets a note instead."""
-    from dqnlab.analysis.inspection.qvalues import inspect_run
+    from dqnlab.analysis.inspection.write import inspect_run
 
     taken: set[str] = set()
     for group in report.groups:
