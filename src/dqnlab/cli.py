@@ -525,7 +525,8 @@ def sweep(
         cpus_per_run, gpus_per_run, memory_per_run, max_retries,
     )  # fmt: skip
     from dqnlab.sweeps.cluster import node_resources
-    from dqnlab.sweeps.sweep import check_resources, run_sweep_on_ray
+    from dqnlab.sweeps.driver import run_sweep_on_ray
+    from dqnlab.sweeps.resources import check_resources
 
     with _ray_connection(address):
         check_resources(resources, node_resources())
@@ -567,13 +568,8 @@ def _plan_sweep_command(
     from dqnlab.config import parse_overrides
     from dqnlab.envs import check_env_name
     from dqnlab.run.rundir import default_sweep_dir
-    from dqnlab.sweeps.sweep import (
-        check_sweep_dir,
-        game_set,
-        parse_variation,
-        plan_grid,
-        sweep_resources,
-    )
+    from dqnlab.sweeps.grid import check_sweep_dir, game_set, parse_variation, plan_grid
+    from dqnlab.sweeps.resources import sweep_resources
 
     if (env is None) == (games is None):
         raise DqnlabError(

@@ -1,18 +1,31 @@
-"""`dqnlab status`: a sweep's runs in each state, from the run directories alone."""
+"""`dqnlab status`: a sweep's runs in each state, from the run directories alone; and the
+same columns and overall bar in the live table `dqnlab sweep` draws with rich."""
 
 from __future__ import annotations
 
+import io
 import json
 import subprocess
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
-from dqnlab.analysis.status import collect_status, format_status_table, record_attempt, status_json
+from rich.console import Console
+
+from dqnlab.analysis.status import (
+    COLUMNS,
+    RunStatus,
+    collect_status,
+    format_status_table,
+    live_table,
+    record_attempt,
+    status_json,
+)
 from dqnlab.config import resolve_config
 from dqnlab.run import rundir
 from dqnlab.run.lease import RunLease
-from dqnlab.sweeps.sweep import parse_variation, plan_grid, write_sweep_file
+from dqnlab.sweeps.grid import parse_variation, plan_grid, write_sweep_file
 
 EPISODES = "step,frames,episode,score,steps,epsilon,wall_seconds\n"
 EVALUATIONS = "step,frames,mean\n"
@@ -96,3 +109,58 @@ def test_an_atari_run_under_way_gets_its_on_track_verdict(tmp_path: Path) -> Non
     assert record["on_track"]["window_start_frames"] == 0
     lines = format_status_table([status])
     assert "above the range" in lines[-1] and "Dopamine DQN" in lines[-2]
+
+
+# The live table of `dqnlab sweep` and the table of `dqnlab status` -----------------------
+
+
+def one_in_each_state() -> list[RunStatus]:
+    def run(state: str, step: int, **figures: Any) -> RunStatus:
+        return RunStatus(f"CartPole-v1-{state}-s0", "CartPole-v1", 0, {}, state, step, 3000,
+                         **figures)  # fmt: skip
+
+    return [
+        run("done", 3000, last_eval_mean=12.5, attempts=1, node="node-a"),
+        run("running", 1500, last_eval_mean=9.25, attempts=2, node="node-b",
+            frames_per_second=400.0, steps_per_second=100.0),
+        run("retrying", 300, attempts=2, node="node-c"),
+        run("failed", 100, attempts=1, node="node-a"),
+        run("stopped", 200, attempts=1, node="node-a"),
+        run("pending", 0),
+    ]  # fmt: skip
+
+
+def rendered(renderable: Any) -> str:
+    console = Console(file=io.StringIO(), width=180, color_system=None)
+    console.print(renderable)
+    return console.file.getvalue()  # type: ignore[attr-defined]
+
+
+def test_the_live_table_shows_each_runs_figures_and_the_overall_bar() -> None:
+    statuses = one_in_each_state()
+    text = rendered(live_table(statuses))
+    lines = text.splitlines()
+    header = next(line for line in lines if "frames/s" in line)
+    assert header.split() == ["run", "node", "state", "step", "frames/s", "last", "eval",
+                              "attempts"]  # fmt: skip
+    running = next(line for line in lines if "CartPole-v1-running-s0" in line)
+    assert running.split()[1:] == ["node-b", "running", "1,500", "/", "3,000", "400", "9.25", "2"]
+    failed = next(line for line in lines if "CartPole-v1-failed-s0" in line)
+    assert failed.split()[1:] == ["node-a", "failed", "100", "/", "3,000", "-", "-", "1"]
+    # 5,100 of 18,000 steps; 10,000 left (not done or failed) at the running run's 100/s.
+    bar = lines[0]
+    assert "28% of 18,000 steps, 1/6 runs done" in bar and "about 100 s left" in bar
+    assert "1 pending, 1 running, 1 retrying, 1 stopped, 1 done, 1 failed" in bar
+
+
+def test_dqnlab_status_prints_the_same_cells_and_bar_as_the_live_table() -> None:
+    statuses = one_in_each_state()
+    plain = format_status_table(statuses)
+    live = rendered(live_table(statuses)).splitlines()
+    for status in statuses:
+        cells = [column.cell(status) for column in COLUMNS]
+        plain_row = next(line for line in plain if line.startswith(status.name + " "))
+        live_row = next(line for line in live if status.name in line)
+        assert plain_row.split() == live_row.split() == " ".join(cells).split()
+    assert plain[-1].startswith("[#####...............] 28% of 18,000 steps, 1/6 runs done")
+    assert plain[-1].split("] ", 1)[1] in live[0]

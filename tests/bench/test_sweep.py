@@ -10,7 +10,7 @@ import psutil
 import pytest
 
 from dqnlab.bench.sweep import overhead_figures, run_sweep_benchmark, runs_at_once
-from dqnlab.sweeps.sweep import RunResources
+from dqnlab.sweeps.resources import RunResources
 
 
 def test_overhead_per_run_is_the_difference_of_the_walls_over_the_runs() -> None:

@@ -10,8 +10,8 @@ from dqnlab.errors import ConfigError, DqnlabError
 from dqnlab.run import rundir
 from dqnlab.run.rundir import load_run_config
 from dqnlab.sweeps.ablate import Variation, check_sweep_dir, parse_variation, plan_sweep, run_sweep
+from tests.helpers import dqnlab_main
 from tests.sweeps.ray_helpers import loopback_ray, non_loopback_sockets
-from tests.sweeps.test_sweep import dqnlab_main
 
 TINY = {
     "replay_start_steps": 100,

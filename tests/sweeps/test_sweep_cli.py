@@ -24,7 +24,7 @@ import pytest
 from dqnlab.analysis.status import read_attempts, run_status
 from dqnlab.run.lease import lease_is_live
 from dqnlab.sweeps.cluster import start_loopback_cluster
-from dqnlab.sweeps.sweep import Sweep, parse_variation, plan_grid, planned_record
+from dqnlab.sweeps.grid import Sweep, parse_variation, plan_grid, planned_record
 from tests.run.test_resume import assert_same_run
 from tests.sweeps.ray_helpers import non_loopback_sockets, ray_processes
 

@@ -19,15 +19,9 @@ from typing import Any
 import pytest
 
 from dqnlab.analysis.status import read_attempts, run_status
-from dqnlab.sweeps.sweep import (
-    PlannedRun,
-    RunResources,
-    Sweep,
-    parse_variation,
-    plan_grid,
-    planned_record,
-    run_sweep_on_ray,
-)
+from dqnlab.sweeps.driver import run_sweep_on_ray
+from dqnlab.sweeps.grid import PlannedRun, Sweep, parse_variation, plan_grid, planned_record
+from dqnlab.sweeps.resources import RunResources
 from tests.run.test_resume import assert_same_run
 from tests.sweeps.ray_helpers import loopback_ray, non_loopback_sockets, ray_processes
 

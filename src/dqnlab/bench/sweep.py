@@ -49,15 +49,9 @@ from dqnlab.sweeps.cluster import (
     node_resources,
     start_loopback_cluster,
 )
-from dqnlab.sweeps.sweep import (
-    PlannedRun,
-    RunResources,
-    Sweep,
-    check_resources,
-    plan_grid,
-    run_sweep_on_ray,
-    sweep_resources,
-)
+from dqnlab.sweeps.driver import run_sweep_on_ray
+from dqnlab.sweeps.grid import PlannedRun, Sweep, plan_grid
+from dqnlab.sweeps.resources import RunResources, check_resources, sweep_resources
 
 ENV = "CartPole-v1"
 # tests/sweeps/test_sweep_faults.py's settings: a run of 600 steps takes about 15 s here,

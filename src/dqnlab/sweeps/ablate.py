@@ -1,5 +1,5 @@
 """Ablations: a small grid of runs on one environment that differ in named settings, the
-short form of a sweep (`sweeps.sweep`), on the same engine.
+short form of a sweep (`sweeps.driver`), on the same engine.
 
 `dqnlab ablate --env breakout --vary life_loss_terminal=true,false --seeds 2` trains
 breakout-{life_loss_terminal=true,false}-s{0,1}, each with `dqnlab train` in its own
@@ -21,17 +21,16 @@ from typing import Any
 import psutil
 
 from dqnlab.errors import ConfigError
-from dqnlab.sweeps.sweep import (
+from dqnlab.sweeps.driver import run_sweep_on_ray
+from dqnlab.sweeps.grid import (
     PlannedRun,
-    RunResources,
     Sweep,
     Variation,
     check_sweep_dir,
     parse_variation,
     plan_grid,
-    run_memory_bytes,
-    run_sweep_on_ray,
 )
+from dqnlab.sweeps.resources import RunResources, run_memory_bytes
 
 __all__ = [
     "PlannedRun", "Sweep", "Variation", "check_sweep_dir", "default_jobs", "parse_variation",
