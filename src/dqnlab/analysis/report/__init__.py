@@ -10,14 +10,16 @@ set of runs.
   held-out figures drawn with them);
 - `aggregate`: the aggregates across games with stratified bootstrap confidence
   intervals (IQM, median, mean, optimality gap), performance profiles and probabilities
-  of improvement, computed with rliable, and their figures;
+  of improvement, computed with rliable; `aggregate_figures`: their figures;
 - `tables`: what a report holds (`Report`), its CSV records, console table and results.md;
+  `legend`: the prose of results.md (its legend, the on-track table's text);
 - `write`: `build_report` and `write_report`, the only module with side effects: it plays
   missing final evaluations, inspects Q-values, writes the outputs and removes stale ones.
 
 Imports point one way: scores and reference import runs, curves imports reference and
-runs, aggregate imports runs and scores, tables imports those five, write imports them
-all, and nothing but this file imports write.
+runs, aggregate imports runs and scores, aggregate_figures imports aggregate, legend
+imports runs and reference, tables imports all of these but the figures, write imports
+them all, and nothing but this file imports write.
 """
 
 from dqnlab.analysis.report.aggregate import (
@@ -33,12 +35,12 @@ from dqnlab.analysis.report.aggregate import (
     aggregate_scores,
     aggregate_statistics,
     fraction_above,
-    interval_figure,
     probability_of_improvement,
-    profile_figure,
     score_matrices,
 )
+from dqnlab.analysis.report.aggregate_figures import interval_figure, profile_figure
 from dqnlab.analysis.report.curves import Curve, CurveSeries, curve_figure, learning_curves
+from dqnlab.analysis.report.legend import LEGEND
 from dqnlab.analysis.report.runs import (
     ALL_EQUAL,
     NOT_GROUPED,
@@ -63,7 +65,6 @@ from dqnlab.analysis.report.scores import (
     summary_rows,
 )
 from dqnlab.analysis.report.tables import (
-    LEGEND,
     Report,
     RunInspection,
     format_markdown,

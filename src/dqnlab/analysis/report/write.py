@@ -27,13 +27,8 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from dqnlab.analysis.report.aggregate import (
-    Aggregates,
-    AggregateSettings,
-    aggregate_scores,
-    interval_figure,
-    profile_figure,
-)
+from dqnlab.analysis.report.aggregate import Aggregates, AggregateSettings, aggregate_scores
+from dqnlab.analysis.report.aggregate_figures import interval_figure, profile_figure
 from dqnlab.analysis.report.curves import curve_figure, learning_curves
 from dqnlab.analysis.report.reference import REFERENCES, load_reference_curves, on_track_rows
 from dqnlab.analysis.report.runs import Group, RunResults, find_runs, group_runs, load_run
