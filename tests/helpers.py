@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import subprocess
 import sys
 from pathlib import Path
 from typing import Any
@@ -74,3 +75,11 @@ def dqnlab_main(capsys: pytest.CaptureFixture[str], monkeypatch, *args: str) -> 
     with pytest.raises(SystemExit) as exit_info:
         main()
     return int(exit_info.value.code or 0), capsys.readouterr().err
+
+
+def dqnlab(*args: str, cwd: Path | None = None) -> subprocess.CompletedProcess[str]:
+    """`dqnlab ARGS` as a user runs it: a new process, its output captured."""
+    return subprocess.run(
+        [sys.executable, "-m", "dqnlab", *args],
+        capture_output=True, text=True, cwd=cwd, timeout=600,
+    )  # fmt: skip

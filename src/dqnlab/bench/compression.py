@@ -6,16 +6,17 @@ resident bytes per transition and the compression ratio, the time to sample a mi
 the time to compress a chunk (per agent step), training frames/s with each (alternating
 rounds, so that the machine's load falls on both alike), and the bytes and seconds of a
 full-replay checkpoint (optionally of a larger replay repeating the same transitions).
-`scan` measures the compressed size of frames per game, for the
-table the memory check reads (data/replay_compression.csv).
+`scan` measures the compressed size of frames per game, and `write_scan` every Atari-57
+game's into the table the memory check reads (data/replay_compression.csv).
 """
 
 from __future__ import annotations
 
+import csv
 import shutil
 import tempfile
 import time
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -230,3 +231,23 @@ def scan(
             }
         )
     return rows
+
+
+def write_scan(path: Path, steps: int, echo: Callable[[str], Any] = print) -> None:
+    """`dqnlab bench --compression-scan PATH`: `scan` of every Atari-57 game into the CSV
+    at `path`, under a comment line giving the command, a row written (and echoed) as each
+    game is measured."""
+    from dqnlab.analysis.report.scores import load_reference_scores  # the 57 games
+
+    games = sorted(load_reference_scores())
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with path.open("w", newline="") as handle:
+        handle.write(f"# dqnlab bench --compression-scan {path} --scan-steps {steps}\n")
+        writer = None
+        for row in (scan([game], steps)[0] for game in games):
+            if writer is None:
+                writer = csv.DictWriter(handle, fieldnames=list(row))
+                writer.writeheader()
+            writer.writerow(row)
+            handle.flush()
+            echo(f"{row['game']:24s} {row['lz4_bytes_per_frame']:8.1f} B/frame  x{row['ratio']}")

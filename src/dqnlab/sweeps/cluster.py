@@ -13,9 +13,11 @@ package never import it.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import socket
+from collections.abc import Iterator
 from dataclasses import dataclass
 from typing import Any
 
@@ -171,6 +173,17 @@ def connect(address: str) -> Connection:
             "ray://HOST:PORT"
         ) from None
     return Connection(address)
+
+
+@contextlib.contextmanager
+def connected(address: str) -> Iterator[Connection]:
+    """Connected to Ray as `--address` says (`connect`) for the block; a local cluster
+    started here ends with it."""
+    connection = connect(address)
+    try:
+        yield connection
+    finally:
+        connection.close()
 
 
 def find_auto_address() -> str:

@@ -170,7 +170,7 @@ def test_settings_are_checked_and_the_command_line_shares_their_defaults() -> No
         AggregateSettings(bootstrap_repetitions=0)
     with pytest.raises(DqnlabError, match="seed"):
         AggregateSettings(bootstrap_seed=-1)
-    from dqnlab.cli import report
+    from dqnlab.cli.results import report
 
     defaults = inspect.signature(report).parameters
     assert defaults["bootstrap_reps"].default == DEFAULT_BOOTSTRAP_REPETITIONS

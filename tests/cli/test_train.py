@@ -1,23 +1,15 @@
-"""The `dqnlab` command end to end, as a user runs it: real processes, real environments."""
+"""`dqnlab train` end to end, as a user runs it (real processes, real environments), the
+runs evaluated after; runs it refuses to overwrite; bad input as one clear line."""
 
 from __future__ import annotations
 
-import csv
 import json
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
 
 from dqnlab.analysis.video import video_file_name
-
-
-def dqnlab(*args: str, cwd: Path | None = None) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        [sys.executable, "-m", "dqnlab", *args],
-        capture_output=True, text=True, cwd=cwd, timeout=600,
-    )  # fmt: skip
+from tests.helpers import dqnlab
 
 
 def test_train_and_evaluate_cartpole(tmp_path: Path) -> None:
@@ -81,61 +73,6 @@ def test_train_and_evaluate_an_atari_game(tmp_path: Path) -> None:
     assert (videos / name).stat().st_size > 10_000
 
 
-def test_report_and_inspect_two_runs_that_differ_in_one_setting(tmp_path: Path) -> None:
-    runs = []
-    for gamma in ("0.9", "0.99"):
-        run = tmp_path / "runs" / f"cartpole-{gamma}"
-        trained = dqnlab(
-            "train", "--env", "CartPole-v1", "--steps", "900", "--run-dir", str(run),
-            "--set", f"discount={gamma}", "--set", "replay_start_steps=300",
-            "--set", "eval_period_steps=300", "--set", "eval_steps=300", "--no-progress",
-        )  # fmt: skip
-        assert trained.returncode == 0, trained.stderr
-        runs.append(run)
-    out = tmp_path / "report"
-    reported = dqnlab("report", *map(str, runs), "--out", str(out), "--episodes", "2",
-                      "--frames", "3")  # fmt: skip
-    assert reported.returncode == 0, reported.stderr
-    rows = list(csv.DictReader((out / "results.csv").open()))
-    assert sorted(row["configuration"] for row in rows) == ["discount=0.9", "discount=0.99"]
-    for run, row in zip(runs, sorted(rows, key=lambda row: row["configuration"]), strict=True):
-        final = json.loads((run / "final_evaluation.json").read_text())  # played by report
-        assert final["episodes"] == 2 and float(row["score_mean"]) == pytest.approx(final["mean"])
-        assert f"{final['mean']:.1f} ± {final['std']:.1f}" in reported.stdout
-        q_values = list(csv.DictReader((out / "q-values" / run.name / "q_values.csv").open()))
-        assert {r["network"] for r in q_values} == {"best", "worst"}
-        assert len(q_values) == 2 * 3 * 2  # networks x frames x CartPole's actions
-    assert (out / "curves-CartPole-v1.png").stat().st_size > 0
-    assert "![CartPole-v1](curves-CartPole-v1.png)" in (out / "results.md").read_text()
-
-    inspected = dqnlab("inspect", str(runs[0]), "--frames", "2", "--checkpoints", "best")
-    assert inspected.returncode == 0, inspected.stderr
-    assert len(list((runs[0] / "inspect").glob("frame-*.png"))) == 2
-    # By default (eval_networks_kept = "best_and_worst") no network is kept by step.
-    missing = dqnlab("inspect", str(runs[0]), "--checkpoints", "123")
-    assert missing.returncode == 2 and "keeps no network per evaluation" in missing.stderr
-
-
-@pytest.mark.parametrize(
-    "command",
-    [
-        "train",
-        "resume",
-        "evaluate",
-        "bench",
-        "ablate",
-        "sweep",
-        "status",
-        "report",
-        "inspect",
-        "games",
-    ],
-)
-def test_every_command_has_help(command: str) -> None:
-    result = dqnlab(command, "--help")
-    assert result.returncode == 0 and "Usage:" in result.stdout
-
-
 def test_refuses_to_overwrite_a_run(tmp_path: Path) -> None:
     (tmp_path / "run").mkdir()
     (tmp_path / "run" / "config.toml").write_text("")
@@ -171,17 +108,3 @@ def test_bad_input_gives_one_clear_line(tmp_path: Path, args: list[str], message
     assert "Traceback" not in result.stderr
     assert len(result.stderr.strip().splitlines()) == 1
     assert not (tmp_path / "run").exists()
-
-
-def test_evaluate_a_directory_that_is_not_a_run(tmp_path: Path) -> None:
-    result = dqnlab("evaluate", str(tmp_path))
-    assert result.returncode == 2 and "not a dqnlab run directory" in result.stderr
-
-
-def test_lists(tmp_path: Path) -> None:
-    games = dqnlab("games")
-    assert games.returncode == 0 and "space_invaders" in games.stdout.split()
-    presets = dqnlab("presets")
-    assert presets.stdout.split() == ["classic", "machado", "nature", "seed-paper"]
-    nature = dqnlab("presets", "nature")
-    assert "learning_rate = 0.00025" in nature.stdout
