@@ -6,6 +6,7 @@ GAME ?= pong
 ARGS ?=
 
 .PHONY: install install-test train test test-slow lint format typecheck clean
+.PHONY: install-docs docs docs-serve
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -16,6 +17,9 @@ install: $(BIN)/python
 
 install-test: $(BIN)/python
 	$(BIN)/python -m pip install --quiet -e ".[test]"
+
+install-docs: $(BIN)/python
+	$(BIN)/python -m pip install --quiet -e ".[docs]"
 
 # The main job: the Nature DQN on an Atari game (GAME=breakout, ARGS="--seed 1" ...).
 train: install
@@ -44,5 +48,16 @@ format: install-test
 typecheck: install-test
 	$(BIN)/mypy src
 
+# The documentation site, into site/: the settings and command references are generated from
+# the code (docs/hooks.py); --strict fails on any warning (a broken link or anchor, a page
+# left out of the navigation).
+docs: install-docs
+	$(BIN)/mkdocs build --strict --site-dir site
+
+# The site served on this machine only, rebuilt as docs/ changes.
+docs-serve: install-docs
+	$(BIN)/mkdocs serve -a 127.0.0.1:8000
+
 clean:
 	rm -rf $(VENV) build dist src/*.egg-info .pytest_cache .ruff_cache .mypy_cache
+	rm -rf site

@@ -2,14 +2,18 @@
 
 from __future__ import annotations
 
+import subprocess
+import sys
 from pathlib import Path
 from typing import Any
 
 import gymnasium as gym
 import numpy as np
+import pytest
 import torch
 
 from dqnlab.algorithm.agent import Agent, build_agent
+from dqnlab.cli import main
 from dqnlab.config import Config
 from dqnlab.envs import make_env
 
@@ -63,3 +67,19 @@ class RunsCode:
 
     def __reduce__(self) -> tuple[Any, ...]:
         return (exec, (f"open({str(self.marker)!r}, 'w').close()",))
+
+
+def dqnlab_main(capsys: pytest.CaptureFixture[str], monkeypatch, *args: str) -> tuple[int, str]:  # noqa: ANN001
+    """`dqnlab ARGS` in this process (no interpreter start-up): its exit status and stderr."""
+    monkeypatch.setattr(sys, "argv", ["dqnlab", *args])
+    with pytest.raises(SystemExit) as exit_info:
+        main()
+    return int(exit_info.value.code or 0), capsys.readouterr().err
+
+
+def dqnlab(*args: str, cwd: Path | None = None) -> subprocess.CompletedProcess[str]:
+    """`dqnlab ARGS` as a user runs it: a new process, its output captured."""
+    return subprocess.run(
+        [sys.executable, "-m", "dqnlab", *args],
+        capture_output=True, text=True, cwd=cwd, timeout=600,
+    )  # fmt: skip

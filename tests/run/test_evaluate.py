@@ -33,7 +33,7 @@ def test_final_evaluation_plays_a_checkpoint_on_several_environments(tmp_path) -
 
 
 def test_a_final_evaluation_that_might_never_end_is_announced() -> None:
-    from dqnlab.cli import _format_warning
+    from dqnlab.cli.common import format_warning
     from dqnlab.run.evaluate import unbounded_games_warning
 
     endless = resolve_config("classic", env=f"{BlinkEnv.__module__}:BlinkEnv")  # no TimeLimit
@@ -44,7 +44,7 @@ def test_a_final_evaluation_that_might_never_end_is_announced() -> None:
     assert unbounded_games_warning(resolve_config("classic", env="CartPole-v1")) is None
     assert unbounded_games_warning(resolve_config("nature", env="pong")) is None
     # Shown by the command as one line of its own.
-    assert _format_warning(message, UserWarning, "/x/dqnlab/evaluate.py", 1) == (
+    assert format_warning(message, UserWarning, "/x/dqnlab/evaluate.py", 1) == (
         f"dqnlab: warning: {message}\n"
     )
-    assert "UserWarning" in _format_warning("other", UserWarning, "/x/gymnasium/core.py", 1)
+    assert "UserWarning" in format_warning("other", UserWarning, "/x/gymnasium/core.py", 1)

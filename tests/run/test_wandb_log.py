@@ -206,8 +206,8 @@ def test_steps_wandb_lacks_before_the_checkpoint_come_from_tensorboard(
 def test_the_final_evaluation_videos_and_report_figures_reach_the_summary(
     resumed_run, tmp_path: Path, capsys
 ) -> None:
-    from dqnlab.cli import evaluate
-    from dqnlab.tools.report import write_report
+    from dqnlab.analysis.report import write_report
+    from dqnlab.cli.results import evaluate
 
     run = resumed_run["run"]
     evaluate(run, episodes=1, device="cpu", video=tmp_path / "videos", video_format="gif")

@@ -1,0 +1,1 @@
+"""Q-value inspection: what several networks of a run think of the same frames."""

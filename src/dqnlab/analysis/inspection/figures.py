@@ -1,0 +1,111 @@
+"""The figures of a Q-value inspection: a frame beside each network's Q-value per action,
+each network's greedy action hatched, and an overview of several frames."""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+import numpy as np
+from matplotlib.axes import Axes
+from matplotlib.figure import Figure
+from matplotlib.patches import Patch
+
+if TYPE_CHECKING:
+    from dqnlab.analysis.inspection.qvalues import Inspection
+
+Q_VALUES_AXES = "q_values"  # the label of the bar chart's axes in a figure
+_GREEDY_HATCH = "//"
+
+
+def frame_figure(inspection: Inspection, frame: int) -> Figure:
+    """The frame (its screen, or the network's newest input) beside a grouped bar chart
+    of each network's Q-value per action, each network's greedy action hatched."""
+    figure = Figure(figsize=(11.0, 4.2), layout="constrained")
+    left, right = figure.subplots(1, 2, width_ratios=(1, 2.2))
+    right.set_label(Q_VALUES_AXES)
+    _draw_frame(left, inspection, frame)
+    _draw_q_values(right, inspection, frame, legend=True)
+    figure.suptitle(_frame_title(inspection, frame))
+    return figure
+
+
+def overview_figure(inspection: Inspection) -> Figure:
+    """All frames, a row each: the frame and its Q-values (the legend on the first row)."""
+    count = len(inspection.observations)
+    figure = Figure(figsize=(11.0, 2.8 * count + 0.6), layout="constrained")
+    rows = figure.subplots(count, 2, width_ratios=(1, 2.2), squeeze=False)
+    for frame, (left, right) in enumerate(rows):
+        right.set_label(Q_VALUES_AXES)
+        _draw_frame(left, inspection, frame)
+        _draw_q_values(right, inspection, frame, legend=frame == 0)
+        right.set_title(_frame_title(inspection, frame), fontsize="small")
+    figure.suptitle(f"{inspection.env}: Q-values per action ({inspection.note})", fontsize="small")
+    return figure
+
+
+def _frame_title(inspection: Inspection, frame: int) -> str:
+    where = f", game step {inspection.game_steps[frame]}" if inspection.game_steps else ""
+    return f"{inspection.env}: frame {frame}{where}"
+
+
+def _draw_frame(axes: Axes, inspection: Inspection, frame: int) -> None:
+    newest = inspection.observations[frame, -1]
+    if inspection.screens is not None:
+        axes.imshow(inspection.screens[frame], interpolation="nearest")
+        axes.set_title("screen", fontsize="small")
+        axes.set_axis_off()
+    elif newest.ndim >= 2:
+        image = newest if newest.ndim == 2 else np.moveaxis(newest, 0, -1)
+        if image.ndim == 3 and image.shape[-1] != 3:
+            image = image[..., 0]
+        axes.imshow(image, cmap="gray" if image.ndim == 2 else None, interpolation="nearest")
+        axes.set_title("network input, newest frame", fontsize="small")
+        axes.set_axis_off()
+    else:
+        values = np.asarray(newest, dtype=np.float64).ravel()
+        positions = np.arange(len(values))
+        axes.barh(positions, values, color="0.5")
+        axes.set_yticks(positions, [f"[{i}] {value:.3g}" for i, value in enumerate(values)])
+        axes.invert_yaxis()
+        axes.axvline(0.0, color="black", linewidth=0.6)
+        axes.set_title("newest observation", fontsize="small")
+
+
+def _draw_q_values(axes: Axes, inspection: Inspection, frame: int, legend: bool) -> None:
+    count = len(inspection.networks)
+    positions = np.arange(len(inspection.action_names))
+    width = 0.8 / count
+    greedy = inspection.greedy_actions
+    for k in range(count):
+        offset = (k - (count - 1) / 2) * width
+        bars = axes.bar(positions + offset, inspection.q_values[k, frame], width, color=f"C{k}")
+        chosen = bars.patches[int(greedy[k, frame])]
+        chosen.set_hatch(_GREEDY_HATCH)
+        chosen.set_edgecolor("black")
+        chosen.set_linewidth(1.5)
+    many = len(positions) > 8
+    axes.set_xticks(
+        positions,
+        inspection.action_names,
+        rotation=45 if many else 0,
+        ha="right" if many else "center",
+    )
+    axes.set_xlabel("action")
+    axes.axhline(0.0, color="black", linewidth=0.6)
+    axes.set_ylabel("Q-value")
+    axes.grid(axis="y", alpha=0.3)
+    if legend:
+        # Handles of their own: a network's first bar may be its hatched greedy one.
+        handles = [
+            Patch(facecolor=f"C{k}", label=network.legend_label)
+            for k, network in enumerate(inspection.networks)
+        ]
+        handles.append(
+            Patch(
+                facecolor="white",
+                edgecolor="black",
+                hatch=_GREEDY_HATCH,
+                label="greedy action (highest Q)",
+            )
+        )
+        axes.legend(handles=handles, fontsize="small", loc="best")

@@ -1,0 +1,181 @@
+"""Throughput and memory of the Nature DQN on the machine it runs on.
+
+Figures: replay memory per transition and the resident memory of a filled replay, the
+time to sample a minibatch, the update alone, training throughput with the nature preset
+after the replay-start phase, and evaluation throughput at epsilon 0.05: the final
+evaluation's (`play_games`, every core) and the periodic one's (`play`, one environment).
+"""
+
+from __future__ import annotations
+
+import os
+import platform
+import time
+from typing import Any
+
+import numpy as np
+import psutil
+import torch
+
+from dqnlab import __version__
+from dqnlab.algorithm.replay import ReplayMemory
+from dqnlab.bench.compression import measure_compression
+from dqnlab.bench.measure import measure_training, median_sample_us
+from dqnlab.bench.sb3 import peer_available, run_sb3_dqn
+from dqnlab.config import resolve_config
+from dqnlab.errors import DqnlabError
+from dqnlab.run.lockstep import play_games
+from dqnlab.run.play import play
+from dqnlab.run.state import TrainingState, replay_device
+
+
+def _resident_bytes() -> int:
+    return psutil.Process().memory_info().rss
+
+
+def _fill(replay: ReplayMemory, rng: np.random.Generator) -> None:
+    """Fill every slot with distinct-looking frames (a pool of random ones, cycled)."""
+    pool = rng.integers(0, 256, size=(64, *replay.frame_shape), dtype=np.uint8)
+    for i in range(replay.capacity):
+        replay.add(pool[i % 64], int(i % 4), 0.0, False)
+
+
+def run_benchmark(
+    env: str = "breakout",
+    steps: int = 2000,
+    replay_capacity: int = 1_000_000,
+    device: torch.device | None = None,
+    seed: int = 0,
+    update_repeats: int = 50,
+    peers: bool = False,
+    rounds: int | None = None,
+    peer_learning_starts: int = 5000,
+    compile_update: bool = False,
+    compression_fill_steps: int = 0,
+    compression_checkpoint_capacity: int = 0,
+) -> dict[str, Any]:
+    """All figures in one run. With `peers`, Stable-Baselines3's DQN is measured in
+    `rounds` (default 2) alternating with dqnlab's training, with the same settings. With
+    `compression_fill_steps`, the compressed replay's figures on that many transitions of
+    the game (`compression.measure_compression`)."""
+    device = device or torch.device("cpu")
+    rounds = rounds or (2 if peers else 1)
+    if peers and not peer_available():
+        raise DqnlabError(
+            "--peers needs Stable-Baselines3: pip install 'dqnlab[bench]' (or -e '.[bench]')"
+        )
+    config = resolve_config(
+        "nature",
+        env=env,
+        seed=seed,
+        replay_capacity=replay_capacity,
+        compile_update=compile_update,
+    )
+    figures: dict[str, Any] = {
+        "env": env,
+        "device": str(device),
+        "threads": torch.get_num_threads(),
+        "cpu_count": psutil.cpu_count(),
+        "dqnlab": __version__,
+        "torch": torch.__version__,
+        "numpy": np.__version__,
+        "python": platform.python_version(),
+        "replay_capacity": replay_capacity,
+        "steps": steps,
+        "compile_update": compile_update,
+        "load_average_1min": os.getloadavg()[0],
+    }
+
+    # Replay memory: resident size once every slot has been written.
+    before = _resident_bytes()
+    on_device = replay_device(config, device, (84, 84), np.dtype(np.uint8))
+    figures["replay_storage"] = "host" if on_device is None else f"host and {on_device}"
+    replay = ReplayMemory(replay_capacity, (84, 84), np.uint8, 4, 32, seed, device=on_device)
+    _fill(replay, np.random.default_rng(seed))
+    figures["replay_resident_bytes"] = _resident_bytes() - before
+    figures["replay_bytes_per_transition"] = replay.bytes_per_transition
+    figures["replay_resident_bytes_per_transition"] = figures["replay_resident_bytes"] / (
+        replay_capacity
+    )
+    figures["peak_resident_bytes"] = _resident_bytes()
+    figures["sample_us"] = median_sample_us(replay, 2000)
+
+    # The update alone, on one sampled minibatch.
+    training = TrainingState(config, device, replay=replay)
+    agent = training.agent
+    batch = replay.sample()
+    for _ in range(5):
+        agent.update(batch)
+    timings = []
+    for _ in range(update_repeats):
+        start = time.perf_counter()
+        agent.update(batch)[0].item()  # .item() waits for the device
+        timings.append(time.perf_counter() - start)
+    figures["update_ms"] = float(np.median(timings) * 1e3)
+
+    # Training after the replay-start phase, alternating with the peer when asked. Measured
+    # where epsilon has reached its final 0.1, as for 49 of the 50M steps of a Nature run
+    # (at the start of the anneal nearly every action is random and skips the network).
+    training.steps = config.replay_start_steps + config.epsilon_decay_steps
+    for _ in range(100):
+        training.advance()
+    train_runs, peer_runs = [], []
+    for _ in range(rounds):
+        train_runs.append(measure_training(training, steps))
+        if peers:
+            # The peer's epsilon reaches 0.1 by the end of its replay start: measured alike.
+            peer_runs.append(
+                run_sb3_dqn(
+                    env,
+                    steps,
+                    peer_learning_starts,
+                    seed,
+                    str(device),
+                    epsilon_decay_steps=peer_learning_starts,
+                )  # fmt: skip
+            )
+    figures["train_frames_per_second"] = float(np.mean([run[0] for run in train_runs]))
+    figures["train_frames_per_second_runs"] = [round(run[0], 1) for run in train_runs]
+    for name, fraction in train_runs[-1][1].items():
+        figures[f"train_split_{name}"] = fraction
+    if peers:
+        peer_fps = [run["peer_train_frames_per_second"] for run in peer_runs]
+        figures.update({k: v for k, v in peer_runs[-1].items() if k.startswith("peer")})
+        figures["peer_train_frames_per_second"] = float(np.mean(peer_fps))
+        figures["peer_train_frames_per_second_runs"] = [round(f, 1) for f in peer_fps]
+        figures["train_ratio_vs_peer"] = (
+            figures["train_frames_per_second"] / figures["peer_train_frames_per_second"]
+        )
+
+    # Evaluation at epsilon 0.05, both for `steps` agent steps: the final protocol's games
+    # on every core (as `dqnlab evaluate` plays them, cut when the steps are spent), and the
+    # periodic evaluation's single environment. Worker start-up is not timed.
+    final = play_games(
+        agent,
+        config,
+        config.final_eval_episodes,
+        seed,
+        epsilon=config.eval_epsilon,
+        max_episode_frames=config.final_eval_max_episode_frames,
+        max_steps=steps,
+    )
+    figures["eval_frames_per_second"] = final.frames_per_second
+    figures["eval_envs"] = final.num_envs
+    figures["eval_workers"] = final.workers
+    single = play(agent, training.eval_env, 4, config.eval_epsilon, max_steps=steps)
+    figures["eval_frames_per_second_single"] = single.frames_per_second
+    training.close()
+    del replay, training
+    if compression_fill_steps:
+        figures.update(
+            measure_compression(
+                env,
+                compression_fill_steps,
+                steps,
+                device,
+                seed,
+                rounds=3,
+                checkpoint_capacity=compression_checkpoint_capacity,
+            )  # fmt: skip
+        )
+    return figures

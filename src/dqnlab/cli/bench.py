@@ -1,0 +1,107 @@
+"""`dqnlab bench`: throughput, memory and the compressed replay on this machine, the
+compressed frame size of every game, or what Ray adds to a sweep."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from dqnlab.cli.common import Device, resolve_device, write_json
+
+
+def bench(
+    env: Annotated[str, typer.Option(help="Atari game to measure")] = "breakout",
+    steps: Annotated[
+        int, typer.Option(help="Agent steps timed for training and for evaluation")
+    ] = 2000,
+    replay_capacity: Annotated[
+        int, typer.Option(help="Transitions in the replay measured")
+    ] = 1_000_000,
+    json_path: Annotated[
+        Path | None, typer.Option("--json", help="Write the figures as JSON to this file")
+    ] = None,
+    device: Device = "auto",
+    peers: Annotated[
+        bool, typer.Option(help="Also run Stable-Baselines3's DQN (dqnlab[bench]), alternating")
+    ] = False,
+    compile_update: Annotated[
+        bool, typer.Option("--compile", help="Measure with the update compiled (compile_update)")
+    ] = False,
+    compression_fill_steps: Annotated[
+        int,
+        typer.Option(
+            help="Transitions of random play in which to measure replay_compression = lz4 "
+            "against none (0: skip)"
+        ),
+    ] = 100_000,
+    compression_checkpoint_capacity: Annotated[
+        int,
+        typer.Option(
+            help="Time the compressed and raw checkpoints on replays of this many slots, "
+            "repeating the filled transitions (0: the filled replays themselves)"
+        ),
+    ] = 0,
+    compression_scan: Annotated[
+        Path | None,
+        typer.Option(
+            help="Instead of the rest: write each Atari-57 game's compressed frame size to "
+            "this CSV (the table of data/replay_compression.csv)"
+        ),
+    ] = None,
+    scan_steps: Annotated[
+        int, typer.Option(help="Frames of random play per game for --compression-scan")
+    ] = 16_384,
+    sweep: Annotated[
+        bool,
+        typer.Option(
+            "--sweep",
+            help="Instead of the rest: what Ray adds to a sweep (its start-up, and per run "
+            "against the same runs trained by hand), and the time from a lost node to its "
+            "run training again, on loopback clusters of this machine",
+        ),
+    ] = False,
+    sweep_runs: Annotated[
+        int, typer.Option(help="Tiny CartPole runs trained each way in each --sweep repeat")
+    ] = 4,
+    sweep_repeats: Annotated[
+        int, typer.Option(help="Times --sweep trains the runs by hand and by the sweep, in turn")
+    ] = 2,
+) -> None:
+    """Measure training and evaluation throughput, the update, and replay memory use (with
+    --sweep: what Ray adds to a sweep's runs, and how soon a lost node's run trains again)."""
+    from dqnlab.bench.throughput import run_benchmark
+
+    if compression_scan is not None:
+        from dqnlab.bench.compression import write_scan
+
+        write_scan(compression_scan, scan_steps, echo=typer.echo)
+        return
+    if sweep:
+        import tempfile
+
+        from dqnlab.bench.sweep import run_sweep_benchmark
+
+        with tempfile.TemporaryDirectory(prefix="dqnlab-sweep-bench-") as directory:
+            figures = run_sweep_benchmark(
+                Path(directory),
+                sweep_runs,
+                sweep_repeats,
+                echo=lambda line: typer.echo(line, err=True),
+            )
+    else:
+        figures = run_benchmark(
+            env,
+            steps,
+            replay_capacity,
+            resolve_device(device),
+            peers=peers,
+            compile_update=compile_update,
+            compression_fill_steps=compression_fill_steps,
+            compression_checkpoint_capacity=compression_checkpoint_capacity,
+        )
+    for name, value in figures.items():
+        typer.echo(f"{name:40s} {value:.4g}" if isinstance(value, float) else f"{name:40s} {value}")
+    if json_path:
+        write_json(json_path, figures)

@@ -1,0 +1,112 @@
+"""The inputs of `dqnlab sweep` and `dqnlab ablate`, as given on the command line, checked
+and planned into the grid of runs (and, for a sweep, what each run asks Ray for), before
+Ray is started or any run touched: a bad input is one DqnlabError, naming its option."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+from dqnlab.config import parse_overrides
+from dqnlab.envs import check_env_name, is_atari
+from dqnlab.errors import DqnlabError
+from dqnlab.run.rundir import default_sweep_dir
+from dqnlab.sweeps.ablate import default_jobs, plan_sweep
+from dqnlab.sweeps.grid import Sweep, check_sweep_dir, game_set, parse_variation, plan_grid
+from dqnlab.sweeps.resources import RunResources, sweep_resources
+
+
+@dataclass(frozen=True)
+class SweepPlan:
+    """A sweep ready to run: its grid, what each run asks for, and the runs' device."""
+
+    sweep: Sweep
+    resources: RunResources
+    device: str  # "cuda" where the runs ask for GPUs, else "cpu"
+
+
+def plan_sweep_options(
+    *,
+    env: str | None,
+    games: str | None,
+    preset: str | None,
+    seeds: int,
+    first_seed: int,
+    vary: Sequence[str],
+    settings: list[str],
+    steps: int | None,
+    sweep_dir: Path | None,
+    cpus_per_run: float,
+    gpus_per_run: float,
+    memory_per_run_gb: float | None,
+    max_retries: int,
+) -> SweepPlan:
+    """`dqnlab sweep`'s options checked in the order a user reads them: --env (comma-
+    separated) or --games (`grid.game_set`), --vary and --set texts, the default sweep
+    directory (sweeps/GAMES-KEYS), the grid and the directory it goes into, then each run's
+    resources (memory in GB)."""
+    if (env is None) == (games is None):
+        raise DqnlabError(
+            "dqnlab sweep needs one of --env ENV[,ENV...] or --games nature49|atari57|FILE"
+        )
+    if max_retries < 0:
+        raise DqnlabError(f"--max-retries {max_retries} must be 0 or more")
+    envs = game_set(games) if games else [name.strip() for name in (env or "").split(",")]
+    envs = [name for name in envs if name]
+    for name in envs:
+        check_env_name(name)
+    variations = [parse_variation(text) for text in vary]
+    keys = [key for variation in variations for key in variation.keys]
+    label = Path(games).stem if games else "+".join(envs)
+    sweep_dir = sweep_dir or default_sweep_dir(label, keys or [f"{seeds}seeds"])
+    sweep = plan_grid(
+        envs, variations, preset=preset, overrides=parse_overrides(settings), seeds=seeds,
+        first_seed=first_seed, steps=steps, sweep_dir=sweep_dir,
+    )  # fmt: skip
+    check_sweep_dir(sweep)
+    memory = int(memory_per_run_gb * 1e9) if memory_per_run_gb is not None else None
+    if memory is not None and memory <= 0:
+        raise DqnlabError(f"--memory-per-run {memory_per_run_gb} must be positive")
+    resources = sweep_resources(sweep, cpus_per_run, gpus_per_run, memory)
+    return SweepPlan(sweep, resources, "cuda" if gpus_per_run > 0 else "cpu")
+
+
+def plan_ablation_options(
+    *,
+    env: str,
+    vary: Sequence[str],
+    preset: str | None,
+    settings: list[str],
+    seeds: int,
+    first_seed: int,
+    steps: int | None,
+    sweep_dir: Path | None,
+) -> Sweep:
+    """`dqnlab ablate`'s options checked: the environment, the --vary and --set texts, the
+    default preset (nature for Atari, classic otherwise) and sweep directory
+    (sweeps/ENV-KEYS), the grid (`ablate.plan_sweep`) and the directory it goes into."""
+    check_env_name(env)
+    variations = [parse_variation(text) for text in vary]
+    keys = [key for variation in variations for key in variation.keys]
+    sweep_dir = sweep_dir or default_sweep_dir(env, keys)
+    sweep = plan_sweep(
+        env,
+        variations,
+        preset=preset or ("nature" if is_atari(env) else "classic"),
+        overrides=parse_overrides(settings),
+        seeds=seeds,
+        first_seed=first_seed,
+        steps=steps,
+        sweep_dir=sweep_dir,
+    )
+    check_sweep_dir(sweep)
+    return sweep
+
+
+def ablation_jobs(sweep: Sweep, jobs: int | None) -> int:
+    """`dqnlab ablate --jobs`, checked, or as many runs as the machine has room for
+    (`ablate.default_jobs`)."""
+    if jobs is not None and jobs <= 0:
+        raise DqnlabError(f"--jobs {jobs} must be positive")
+    return jobs or default_jobs(sweep)

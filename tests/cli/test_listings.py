@@ -1,0 +1,19 @@
+"""`dqnlab games` and `dqnlab presets`."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from tests.helpers import dqnlab
+
+
+def test_lists(tmp_path: Path) -> None:
+    games = dqnlab("games")
+    assert games.returncode == 0 and "space_invaders" in games.stdout.split()
+    presets = dqnlab("presets")
+    assert presets.stdout.split() == [
+        "c51", "classic", "double", "dueling", "machado", "nature", "prioritized", "rainbow",
+        "seed-paper",
+    ]  # fmt: skip
+    nature = dqnlab("presets", "nature")
+    assert "learning_rate = 0.00025" in nature.stdout
