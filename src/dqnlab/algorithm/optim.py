@@ -143,6 +143,6 @@ def build_optimizer(
             momentum=0,
         )
     if name == "adam":
-        return torch.optim.Adam(params, lr=learning_rate, eps=adam_epsilon)
+        return torch.optim.Adam(params, lr=learning_rate, eps=adam_epsilon, fused=True)
     accepted = ", ".join(sorted(OPTIMIZER_NAMES))
     raise ValueError(f"unknown optimizer {name!r}; accepted: {accepted}")

@@ -1,14 +1,35 @@
-"""Timings both benchmarks take: training frames/s with the share of each timed part, and
-the median time to sample a minibatch."""
+"""Timings the benchmarks share: the machine they ran on, training frames/s with the share
+of each timed part, and the median time to sample a minibatch."""
 
 from __future__ import annotations
 
+import os
+import platform
 import time
+from typing import Any
 
 import numpy as np
+import psutil
+import torch
 
+from dqnlab import __version__
 from dqnlab.algorithm.replay import ReplayMemory
 from dqnlab.run.state import TIMED_PARTS, TrainingState
+
+
+def machine_figures(device: torch.device) -> dict[str, Any]:
+    """What a figure depends on besides the code: versions, threads, and how loaded the
+    machine was when the measurement began."""
+    return {
+        "device": str(device),
+        "threads": torch.get_num_threads(),
+        "cpu_count": psutil.cpu_count(),
+        "dqnlab": __version__,
+        "torch": torch.__version__,
+        "numpy": np.__version__,
+        "python": platform.python_version(),
+        "load_average_1min": os.getloadavg()[0],
+    }
 
 
 def measure_training(training: TrainingState, steps: int) -> tuple[float, dict[str, float]]:

@@ -8,8 +8,6 @@ evaluation's (`play_games`, every core) and the periodic one's (`play`, one envi
 
 from __future__ import annotations
 
-import os
-import platform
 import time
 from typing import Any
 
@@ -17,10 +15,9 @@ import numpy as np
 import psutil
 import torch
 
-from dqnlab import __version__
 from dqnlab.algorithm.replay import ReplayMemory
 from dqnlab.bench.compression import measure_compression
-from dqnlab.bench.measure import measure_training, median_sample_us
+from dqnlab.bench.measure import machine_figures, measure_training, median_sample_us
 from dqnlab.bench.sb3 import peer_available, run_sb3_dqn
 from dqnlab.config import resolve_config
 from dqnlab.errors import DqnlabError
@@ -73,17 +70,10 @@ def run_benchmark(
     )
     figures: dict[str, Any] = {
         "env": env,
-        "device": str(device),
-        "threads": torch.get_num_threads(),
-        "cpu_count": psutil.cpu_count(),
-        "dqnlab": __version__,
-        "torch": torch.__version__,
-        "numpy": np.__version__,
-        "python": platform.python_version(),
+        **machine_figures(device),
         "replay_capacity": replay_capacity,
         "steps": steps,
         "compile_update": compile_update,
-        "load_average_1min": os.getloadavg()[0],
     }
 
     # Replay memory: resident size once every slot has been written.

@@ -17,8 +17,12 @@ def bench(
         int, typer.Option(help="Agent steps timed for training and for evaluation")
     ] = 2000,
     replay_capacity: Annotated[
-        int, typer.Option(help="Transitions in the replay measured")
-    ] = 1_000_000,
+        int | None,
+        typer.Option(
+            help="Transitions in the replay measured (default 1,000,000; 100,000 per variant "
+            "with --variants)"
+        ),
+    ] = None,
     json_path: Annotated[
         Path | None, typer.Option("--json", help="Write the figures as JSON to this file")
     ] = None,
@@ -62,6 +66,14 @@ def bench(
             "run training again, on loopback clusters of this machine",
         ),
     ] = False,
+    variants: Annotated[
+        str | None,
+        typer.Option(
+            help="Instead of the rest: each listed preset's minibatch draw, update and "
+            "training frames/s side by side (all: nature, double, dueling, prioritized, c51, "
+            "rainbow), and the prioritized draw on a full 1M-slot replay",
+        ),
+    ] = None,
     sweep_runs: Annotated[
         int, typer.Option(help="Tiny CartPole runs trained each way in each --sweep repeat")
     ] = 4,
@@ -70,7 +82,8 @@ def bench(
     ] = 2,
 ) -> None:
     """Measure training and evaluation throughput, the update, and replay memory use (with
-    --sweep: what Ray adds to a sweep's runs, and how soon a lost node's run trains again)."""
+    --variants: the same for each member of the DQN family; with --sweep: what Ray adds to
+    a sweep's runs, and how soon a lost node's run trains again)."""
     from dqnlab.bench.throughput import run_benchmark
 
     if compression_scan is not None:
@@ -90,11 +103,21 @@ def bench(
                 sweep_repeats,
                 echo=lambda line: typer.echo(line, err=True),
             )
+    elif variants is not None:
+        from dqnlab.bench.variants import measure_variants, parse_variants
+
+        figures = measure_variants(
+            parse_variants(variants),
+            env,
+            steps,
+            replay_capacity or 100_000,
+            resolve_device(device),
+        )
     else:
         figures = run_benchmark(
             env,
             steps,
-            replay_capacity,
+            replay_capacity or 1_000_000,
             resolve_device(device),
             peers=peers,
             compile_update=compile_update,

@@ -1,0 +1,140 @@
+"""What each member of the DQN family costs on this machine: `dqnlab bench --variants`.
+
+Every variant is its shipped preset on the same game, with replays of the same size filled
+with the same frames. Per variant: the minibatch draw (for prioritized replay, with the
+priority update that follows every update), the update alone, and training frames/s once
+learning runs, measured in alternating rounds so that a change in the machine's load falls
+on every variant alike. Frames/s are also given as a ratio to the `nature` preset's in the
+same run (and prioritized replay's to uniform's). Besides, the prioritized draw and update
+on a full 1M-slot sum tree: the replay's part of one prioritized update at Nature's size.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Any
+
+import numpy as np
+import torch
+
+from dqnlab.algorithm.prioritized import measure_sampling
+from dqnlab.algorithm.replay import ReplayMemory
+from dqnlab.bench.measure import machine_figures, measure_training
+from dqnlab.config import Config, preset_names, resolve_config
+from dqnlab.errors import ConfigError
+from dqnlab.run.state import TrainingState
+
+FAMILY = ("nature", "double", "dueling", "prioritized", "c51", "rainbow")
+FULL_REPLAY_SLOTS = 1_000_000
+
+
+def parse_variants(text: str) -> list[str]:
+    """`all` or a comma-separated list of shipped presets, checked."""
+    names = list(FAMILY) if text == "all" else [n.strip() for n in text.split(",") if n.strip()]
+    unknown = [name for name in names if name not in preset_names()]
+    if unknown or not names:
+        raise ConfigError(
+            f"--variants {text!r}: {', '.join(unknown) or 'nothing'} is not a shipped preset; "
+            f"accepted: all, or a list of {', '.join(preset_names())}"
+        )
+    return names
+
+
+def _fill(replay: ReplayMemory, rng: np.random.Generator) -> None:
+    """Every slot written with distinct-looking frames (a cycled pool of random ones), in
+    episodes of 1,000 steps, so that n-step windows meet episode ends as in play."""
+    pool = rng.integers(0, 256, size=(64, *replay.frame_shape), dtype=np.uint8)
+    for i in range(replay.capacity):
+        if i % 1000 == 999:
+            replay.add_last(pool[i % 64])
+        else:
+            replay.add(pool[i % 64], int(i % 4), float(i % 7 == 0), False)
+
+
+def _sample(replay: ReplayMemory, config: Config) -> Any:
+    if config.replay_sampling == "prioritized":
+        return replay.sample(importance_exponent=config.importance_exponent_start)
+    return replay.sample()
+
+
+def _median_us(action: Any, repeats: int) -> float:
+    timings = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        action()
+        timings.append(time.perf_counter() - start)
+    return float(np.median(timings) * 1e6)
+
+
+def measure_variants(
+    presets: list[str],
+    env: str = "breakout",
+    steps: int = 1000,
+    replay_capacity: int = 100_000,
+    device: torch.device | None = None,
+    seed: int = 0,
+    rounds: int = 2,
+    update_repeats: int = 30,
+) -> dict[str, Any]:
+    """The figures of each preset in `presets` (see the module's docstring), as
+    `{preset}_{figure}` keys beside the machine's."""
+    device = device or torch.device("cpu")
+    figures: dict[str, Any] = {
+        "env": env,
+        **machine_figures(device),
+        "replay_capacity": replay_capacity,
+        "steps": steps,
+        "rounds": rounds,
+        "variants": ",".join(presets),
+    }
+    states: dict[str, TrainingState] = {}
+    for preset in presets:
+        config = resolve_config(preset, env=env, seed=seed, replay_capacity=replay_capacity)
+        state = TrainingState(config, device)
+        _fill(state.replay, np.random.default_rng(seed))
+        replay, agent = state.replay, state.agent
+
+        def sample_and_tell(replay: ReplayMemory = replay, config: Config = config) -> None:
+            batch = _sample(replay, config)
+            if config.replay_sampling == "prioritized":
+                assert batch.indices is not None
+                replay.update_priorities(batch.indices, np.abs(batch.rewards) + 0.5)
+
+        figures[f"{preset}_sample_us"] = _median_us(sample_and_tell, 1000)
+        batch = _sample(replay, config)
+        for _ in range(3):
+            agent.update(batch)
+
+        def update(agent: Any = agent, batch: Any = batch) -> None:
+            agent.update(batch)[0].item()  # .item() waits for the device
+
+        figures[f"{preset}_update_ms"] = _median_us(update, update_repeats) / 1e3
+        # Past the replay start and the epsilon anneal, as for most of a run.
+        state.steps = config.replay_start_steps + config.epsilon_decay_steps
+        for _ in range(100):
+            state.advance()
+        states[preset] = state
+    runs: dict[str, list[float]] = {preset: [] for preset in presets}
+    for _ in range(rounds):
+        for preset, state in states.items():
+            runs[preset].append(measure_training(state, steps)[0])
+    for preset, state in states.items():
+        figures[f"{preset}_train_frames_per_second"] = float(np.mean(runs[preset]))
+        figures[f"{preset}_train_frames_per_second_runs"] = [round(f, 1) for f in runs[preset]]
+        state.close()
+    base = figures.get("nature_train_frames_per_second")
+    for preset in presets:
+        if base:
+            ratio = figures[f"{preset}_train_frames_per_second"] / base
+            figures[f"{preset}_train_ratio_vs_nature"] = ratio
+    if "prioritized" in presets and "double" in presets:
+        # The prioritized preset is the tuned Double DQN with prioritized replay.
+        figures["prioritized_train_ratio_vs_double"] = (
+            figures["prioritized_train_frames_per_second"]
+            / figures["double_train_frames_per_second"]
+        )
+    full = measure_sampling(capacity=FULL_REPLAY_SLOTS, batch_size=32, repeats=2000, seed=seed)
+    figures["prioritized_1m_sample_us"] = full["sample_us"]
+    figures["prioritized_1m_update_us"] = full["update_us"]
+    figures["prioritized_1m_sample_and_update_us"] = full["total_us"]
+    return figures

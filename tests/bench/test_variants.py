@@ -1,0 +1,42 @@
+"""`dqnlab bench --variants`: every variant's figures are produced, the ratios are the ratios
+of the figures, and bad lists are refused in one line (not the speeds themselves)."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from dqnlab.bench import variants
+from dqnlab.bench.variants import FAMILY, measure_variants, parse_variants
+from dqnlab.errors import ConfigError
+
+
+def test_every_variants_figures_and_their_ratios(monkeypatch) -> None:
+    # A small tree for the full-replay figure: its size is a parameter, not what is tested.
+    monkeypatch.setattr(variants, "FULL_REPLAY_SLOTS", 4096)
+    presets = ["nature", "double", "prioritized"]
+    figures = measure_variants(
+        presets, "pong", steps=30, replay_capacity=1200, device=torch.device("cpu"),
+        rounds=2, update_repeats=2,
+    )  # fmt: skip
+    for preset in presets:
+        for figure in ("sample_us", "update_ms", "train_frames_per_second"):
+            assert figures[f"{preset}_{figure}"] > 0, (preset, figure)
+        assert len(figures[f"{preset}_train_frames_per_second_runs"]) == 2
+        assert figures[f"{preset}_train_ratio_vs_nature"] == pytest.approx(
+            figures[f"{preset}_train_frames_per_second"] / figures["nature_train_frames_per_second"]
+        )
+    assert figures["prioritized_train_ratio_vs_double"] == pytest.approx(
+        figures["prioritized_train_frames_per_second"] / figures["double_train_frames_per_second"]
+    )
+    assert figures["prioritized_1m_sample_and_update_us"] > 0
+    assert figures["variants"] == ",".join(presets)
+
+
+def test_the_list_of_variants() -> None:
+    assert parse_variants("all") == list(FAMILY)
+    assert parse_variants("nature, rainbow") == ["nature", "rainbow"]
+    for text in ("nature,rainbo", ""):
+        with pytest.raises(ConfigError, match="not a shipped preset") as error:
+            parse_variants(text)
+        assert "\n" not in str(error.value)
