@@ -45,6 +45,22 @@ def test_labels_name_the_settings_that_differ_and_ignore_operational_ones() -> N
     assert label == ALL_EQUAL
 
 
+def test_variants_that_differ_in_many_settings_are_named_by_their_presets() -> None:
+    def run(name: str, preset: str, **settings: Any) -> RunResults:
+        return RunResults(Path(name), resolve_config(preset, env="pong", **settings), [], None)
+
+    runs = [run("a", "nature"), run("b", "rainbow", seed=1, total_steps=500_000),
+            run("c", "c51")]  # fmt: skip
+    labels = [(g.label, [r.run_dir.name for r in g.runs]) for g in group_runs(runs)]
+    assert labels == [("preset=nature", ["a"]), ("preset=rainbow", ["b"]), ("preset=c51", ["c"])]
+    # One run that is no preset: every configuration keeps the settings that differ.
+    runs.append(run("d", "rainbow", n_step=5))
+    assert all("n_step=" in g.label for g in group_runs(runs))
+    # Few settings differ (nature against double): they name the configurations.
+    pair = [run("a", "nature"), run("b", "double")]
+    assert [g.label for g in group_runs(pair)] == ["target=max", "target=double"]
+
+
 def test_a_sweep_directory_stands_for_its_runs(cartpole_sweep: Path, tmp_path: Path) -> None:
     for seed in (10, 2):
         (tmp_path / f"run-s{seed}").mkdir()

@@ -12,7 +12,14 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from dqnlab.config import FIELD_NAMES, RESUMABLE_CHANGES, Config, setting_text
+from dqnlab.config import (
+    FIELD_NAMES,
+    RESUMABLE_CHANGES,
+    Config,
+    preset_names,
+    resolve_config,
+    setting_text,
+)
 from dqnlab.errors import DqnlabError
 from dqnlab.run import rundir
 from dqnlab.run.logs import read_csv
@@ -23,6 +30,9 @@ from dqnlab.run.logs import read_csv
 # the number of final-evaluation games (a sample size, also in the table).
 NOT_GROUPED = ("seed", *RESUMABLE_CHANGES, "final_eval_episodes")
 ALL_EQUAL = "all settings equal"
+# Configurations that differ in more settings than this are named by their preset, when
+# each is one (a variant of the DQN family against nature, say): "preset=rainbow".
+MAX_LABEL_SETTINGS = 3
 
 
 # Runs ----------------------------------------------------------------------------------
@@ -143,14 +153,34 @@ def label_keys(runs: Sequence[RunResults]) -> list[str]:
     return [name for name in FIELD_NAMES if name in differing]
 
 
+def matching_preset(config: Config) -> str | None:
+    """The shipped preset `config` is, on every setting that defines a configuration (all
+    but `NOT_GROUPED`), or None."""
+    values = config.to_dict()
+    for name in preset_names():
+        preset = resolve_config(name, env=config.env).to_dict()
+        if all(values[k] == preset[k] for k in FIELD_NAMES if k not in NOT_GROUPED):
+            return name
+    return None
+
+
 def group_runs(runs: Sequence[RunResults]) -> list[Group]:
-    """Groups by game, then by the values of `label_keys`, in order of first appearance."""
+    """Groups by game, then by the values of `label_keys`, in order of first appearance;
+    named by those settings, or by their presets where more than `MAX_LABEL_SETTINGS`
+    differ and every run is one of the shipped presets."""
     keys = label_keys(runs)
+    presets: dict[Path, str | None] = {}
+    if len(keys) > MAX_LABEL_SETTINGS:
+        presets = {run.run_dir: matching_preset(run.config) for run in runs}
+        if None in presets.values():
+            presets = {}
     groups: dict[tuple[str, str], Group] = {}
     for run in runs:
         values = run.config.to_dict()
         settings = {key: values[key] for key in keys}
         label = ", ".join(f"{k}={setting_text(v)}" for k, v in settings.items()) or ALL_EQUAL
+        if presets:
+            label = f"preset={presets[run.run_dir]}"
         group = groups.setdefault((run.config.env, label), Group(run.config.env, label, settings))
         group.runs.append(run)
     return list(groups.values())
