@@ -28,10 +28,10 @@ def test_update_and_target_copy_timing(tmp_path: Path, monkeypatch) -> None:
     sync_steps: list[int] = []
     original_act, original_update = Agent.act, Agent.update
 
-    def act(self, observation, epsilon):
+    def act(self, observation, epsilon, training=False):
         nonlocal steps_taken
         steps_taken += 1
-        return original_act(self, observation, epsilon)
+        return original_act(self, observation, epsilon, training)
 
     def update(self, batch):
         update_steps.append(steps_taken)
