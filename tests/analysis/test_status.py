@@ -108,7 +108,27 @@ def test_an_atari_run_under_way_gets_its_on_track_verdict(tmp_path: Path) -> Non
     assert record["on_track"]["verdict"] == "above the range"
     assert record["on_track"]["window_start_frames"] == 0
     lines = format_status_table([status])
-    assert "above the range" in lines[-1] and "Dopamine DQN" in lines[-2]
+    assert "above the range" in lines[-1] and "Dopamine DQN" in lines[-1]  # the run's agent
+    assert "on track?" in lines[-2] and record["on_track"]["reference"] == "dqn"
+
+
+def test_each_variant_run_under_way_is_set_beside_its_own_agents_curve(tmp_path: Path) -> None:
+    rows = "".join(f"{s},{4 * s},{n},-15,{s},1.0,{s / 300}\n" for n, s in enumerate((900, 1800), 1))
+    for preset in ("c51", "double"):
+        run_dir = tmp_path / preset
+        run_dir.mkdir()
+        rundir.write_run_config(run_dir, resolve_config(preset, env="pong", total_steps=10**7))
+        rundir.episodes_path(run_dir).write_text(EPISODES + rows)
+    c51, double = collect_status(tmp_path)
+    assert c51.on_track is not None and c51.on_track.reference == "c51"
+    assert c51.on_track.verdict is not None
+    records = {record["name"]: record["on_track"] for record in status_json([c51, double])["runs"]}
+    assert records["c51"]["reference"] == "c51" and records["c51"]["why_none"] is None
+    assert records["double"]["reference"] is None and records["double"]["verdict"] is None
+    why = "Dopamine publishes no curve for DQN + double Q-learning"
+    assert records["double"]["why_none"] == why
+    lines = format_status_table([c51, double])
+    assert "Dopamine C51" in lines[-2] and lines[-1].endswith(why)
 
 
 # The live table of `dqnlab sweep` and the table of `dqnlab status` -----------------------

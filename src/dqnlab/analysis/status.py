@@ -31,11 +31,15 @@ from rich.table import Table
 from rich.text import Text
 
 from dqnlab.analysis.report.reference import (
-    REFERENCE_LABEL,
+    AGENTS,
+    REFERENCE_PROTOCOL,
     WINDOW_FRAMES,
     OnTrackRow,
-    load_reference_curves,
+    ReferenceMatch,
+    load_references,
     on_track_row,
+    reference_agent,
+    reference_curve,
 )
 from dqnlab.envs import is_atari
 from dqnlab.errors import DqnlabError
@@ -85,6 +89,8 @@ class RunStatus:
                 "reference_low": row.reference_low,
                 "reference_high": row.reference_high,
                 "verdict": row.verdict,
+                "reference": row.reference,  # the agent compared with, a key of AGENTS
+                "why_none": row.why_none,
             }
         return record
 
@@ -203,18 +209,26 @@ def load_sweep_file(sweep_dir: Path) -> dict[str, Any] | None:
 def collect_status(path: Path) -> list[RunStatus]:
     """Every run of a sweep directory (the grid of its sweep.json, else its run
     directories), or the one run of a run directory, with the on-track verdict of each
-    Atari run that has started (`report.reference`)."""
+    Atari run that has started, against its own agent's curve (`report.reference`)."""
     statuses = _collect_status(path)
     run_dirs = {status.name: path if rundir.is_run_dir(path) else path / status.name
                 for status in statuses}  # fmt: skip
-    curves = load_reference_curves([status.env for status in statuses])
+    configs = {name: rundir.load_run_config(run_dir)
+               for name, run_dir in run_dirs.items() if rundir.is_run_dir(run_dir)}  # fmt: skip
+    references = load_references(configs.values())
     for status in statuses:
         if is_atari(status.env) and status.state != "pending":
+            config = configs.get(status.name)
+            # An attempt starts before the run writes its config: it has trained nothing.
+            match = ReferenceMatch(None, "no training game has ended yet")
+            if config is not None:
+                match = reference_agent(config)
             status.on_track = on_track_row(
                 run_dirs[status.name],
                 status.env,
                 "",
-                curves.get(status.env),
+                match,
+                None if config is None else reference_curve(references, config),
                 steps=status.step,
                 finished=status.state == "done",
                 last_eval_mean=status.last_eval_mean,
@@ -287,7 +301,8 @@ def format_status_table(statuses: list[RunStatus]) -> list[str]:
     on_track = [(status.name, status.on_track) for status in statuses if status.on_track]
     if on_track:
         lines.append(
-            f"on track? the latest 1M-frame window of training games against {REFERENCE_LABEL}:"
+            "on track? the latest 1M-frame window of training games against Dopamine's "
+            f"curve of each run's agent; its {REFERENCE_PROTOCOL}:"
         )
         for name, row in on_track:
             lines.append(f"{name:{widths[0]}s}  {_on_track_text(row)}")
@@ -300,7 +315,8 @@ def _on_track_text(row: OnTrackRow) -> str:
     text = f"{row.window}-{row.window + 1}M frames: {row.score:.1f} over {row.games} games"
     if row.verdict is None:
         return f"{text}; {row.why_none}"
-    return (f"{text}; reference {row.reference_mean:.1f} ({row.reference_low:.1f} to "
+    name = AGENTS[row.reference].name if row.reference is not None else "reference"
+    return (f"{text}; {name} {row.reference_mean:.1f} ({row.reference_low:.1f} to "
             f"{row.reference_high:.1f}): {row.verdict}")  # fmt: skip
 
 

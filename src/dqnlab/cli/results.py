@@ -134,9 +134,10 @@ def report(
     are several), Nature DQN's and the seed paper's scores, human-normalised scores with
     both human baselines; runs are grouped by the settings in which they differ. A run
     without a final evaluation is evaluated first with its best network (saved, so once).
-    Behind each Atari game's curves, Dopamine's published DQN curves (another protocol,
-    labelled), and an "on track?" table: each run's latest 1M-frame window of training
-    games against them; unfinished runs are accepted (with a note). Under the curves,
+    Behind each Atari game's curves, Dopamine's published curve of each agent whose parts
+    a configuration has (DQN, C51, its compact Rainbow; another protocol, labelled), and an
+    "on track?" table: each run's latest 1M-frame window of training games against its
+    agent's curve; unfinished runs are accepted (with a note). Under the curves,
     Nature Fig. 2's held-out mean max-Q and |TD error| where the runs logged them.
     With two games or more, the aggregates across games with 95% stratified bootstrap
     confidence intervals (Agarwal et al. 2021, with rliable): IQM, median, mean and

@@ -14,7 +14,7 @@ from dqnlab.analysis.report import (
     curve_figure,
     write_report,
 )
-from dqnlab.analysis.report.reference import REFERENCE_NAME, REFERENCE_PROTOCOL
+from dqnlab.analysis.report.reference import AGENTS, REFERENCE_PROTOCOL
 from dqnlab.config import resolve_config
 from dqnlab.run.logs import read_csv
 from tests.analysis.report.common import (
@@ -55,8 +55,9 @@ def test_figure_has_a_line_per_configuration_and_a_band_per_seeded_one(
         axes = curve_figure(curve).axes[0]
         assert axes.get_title() == curve.game
         labels = [line.get_label() for line in axes.get_lines()]
-        assert curve.reference is not None  # Dopamine's curve behind both games' lines
-        reference = f"{REFERENCE_NAME}: mean of 5 runs, band min–max\n{REFERENCE_PROTOCOL}"
+        assert list(curve.references) == ["dqn"]  # Dopamine's DQN behind both games' lines
+        name = AGENTS["dqn"].name
+        reference = f"{name}: mean of 5 runs, band min–max\n{REFERENCE_PROTOCOL}"
         assert labels == [series.legend_label for series in curve.series] + [reference]
         legend = axes.get_legend()
         assert [text.get_text() for text in legend.get_texts()] == labels

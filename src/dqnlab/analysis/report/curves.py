@@ -14,7 +14,7 @@ from matplotlib.figure import Figure
 from matplotlib.ticker import FuncFormatter
 
 from dqnlab.analysis.report.reference import (
-    REFERENCE_NAME,
+    AGENTS,
     REFERENCE_PROTOCOL,
     WINDOW_FRAMES,
     ReferenceCurve,
@@ -56,7 +56,9 @@ class Curve:
     # The same factor over all the game's evaluations, always measured: it places the
     # reference curve (in frames) on the steps axis.
     measured_frames_per_step: float = 1.0
-    reference: ReferenceCurve | None = None  # drawn behind the lines when set
+    # Dopamine's curves of the agents the configurations match, by agent (a key of
+    # reference.AGENTS), each drawn once behind the lines.
+    references: dict[str, ReferenceCurve] = field(default_factory=dict)
     files: list[Path] = field(default_factory=list)
 
 
@@ -127,8 +129,8 @@ def _means_at(
 def curve_figure(curve: Curve) -> Figure:
     """The figure of one game: mean score of the periodic evaluations against training
     steps (bottom) and frames (top), a line per configuration, shaded min–max over seeds;
-    the reference curve behind them when set; under them, where the runs logged them,
-    Nature Fig. 2's held-out figures (mean max-Q, mean |TD error|)."""
+    behind them the curve of each agent in `references`; under them, where the runs logged
+    them, Nature Fig. 2's held-out figures (mean max-Q, mean |TD error|)."""
     heldout = [series for series in curve.series if series.heldout_max_q is not None]
     figure = Figure(figsize=(7.0, 7.5 if heldout else 4.5), layout="constrained")
     if heldout:
@@ -156,8 +158,8 @@ def curve_figure(curve: Curve) -> Figure:
                 alpha=0.2,
                 linewidth=0,
             )
-    if curve.reference is not None:
-        _draw_reference(axes, curve)
+    for reference in curve.references.values():
+        _draw_reference(axes, curve, reference)
     axes.set_title(curve.game)
     axes.set_ylabel("mean score per game (periodic evaluation)")
     bottom = axes
@@ -211,12 +213,11 @@ def curve_figure(curve: Curve) -> Figure:
     return figure
 
 
-def _draw_reference(axes: Any, curve: Curve) -> None:
-    """The reference's mean and min–max band in each 1M-frame window (a step each: its
-    value is the mean over the window's games), placed on the steps axis with the game's
-    measured frames per step, over the windows the runs have reached."""
-    reference = curve.reference
-    assert reference is not None
+def _draw_reference(axes: Any, curve: Curve, reference: ReferenceCurve) -> None:
+    """An agent's mean and min–max band in each 1M-frame window (a step each: its value is
+    the mean over the window's games), placed on the steps axis with the game's measured
+    frames per step, over the windows the runs have reached, in the agent's colour."""
+    agent = AGENTS[reference.agent]
     last_step = max(max(series.steps) for series in curve.series)
     ratio = curve.measured_frames_per_step
     windows = min(reference.windows, max(1, int(np.ceil(last_step * ratio / WINDOW_FRAMES))))
@@ -227,14 +228,19 @@ def _draw_reference(axes: Any, curve: Curve) -> None:
 
     axes.fill_between(
         edges, stepped(reference.low), stepped(reference.high), step="post",
-        color="0.5", alpha=0.15, linewidth=0,
+        color=agent.color, alpha=0.15, linewidth=0,
     )  # fmt: skip
-    label = f"{REFERENCE_NAME}: mean of {reference.runs} runs, band min–max\n{REFERENCE_PROTOCOL}"
     axes.step(
-        edges, stepped(reference.mean), where="post", color="0.35", linestyle="--",
-        linewidth=1.2, label=label,
+        edges, stepped(reference.mean), where="post", color=agent.color,
+        linestyle=agent.linestyle, linewidth=1.2, label=reference_legend(reference),
     )  # fmt: skip
     axes.set_xlim(0, last_step * 1.03)
+
+
+def reference_legend(reference: ReferenceCurve) -> str:
+    """The legend of an agent's curve: its name, what is drawn, its protocol."""
+    name = AGENTS[reference.agent].name
+    return f"{name}: mean of {reference.runs} runs, band min–max\n{REFERENCE_PROTOCOL}"
 
 
 def _count_text(value: float) -> str:

@@ -3,8 +3,16 @@ table measures. Text only: `tables.py` places it."""
 
 from __future__ import annotations
 
-from dqnlab.analysis.report.reference import REFERENCE_LABEL
+from dqnlab.analysis.report.reference import AGENTS, REFERENCE_PROTOCOL
 from dqnlab.analysis.report.runs import ALL_EQUAL, NOT_GROUPED
+
+# Which of Dopamine's agents a configuration is compared with (reference.reference_agent).
+MATCHING_TEXT = (
+    f"{AGENTS['dqn'].name} for the Nature DQN's parts (whatever its optimizer, exploration "
+    f"or episodes), {AGENTS['c51'].name} for C51 alone, {AGENTS['rainbow'].name} for C51 "
+    "with n-step returns and prioritized replay, with or without the full Rainbow's double "
+    "Q-learning, dueling head and noisy nets; none for the other variants"
+)
 
 LEGEND = [
     "- **Score**: the final evaluation of each run's best network (the network of the "
@@ -56,8 +64,11 @@ LEGEND = [
     "evaluations.csv: action_repeat_frames per step plus no-op starts). One line per "
     "configuration, the mean over the seeds that have an evaluation at that step; shaded: "
     "lowest to highest seed (configurations with 2 seeds or more). Behind them (Atari "
-    f"games, unless `--reference none`): {REFERENCE_LABEL}, the mean of its runs in each "
-    "1M-frame window as a dashed step, lowest to highest run shaded grey. Under them, where "
+    "games, unless `--reference none`): Dopamine's published curve of the agent each "
+    f"configuration matches ({MATCHING_TEXT}: a note says why), scores of its "
+    f"{REFERENCE_PROTOCOL}. Each agent once, "
+    "the mean of its runs in each 1M-frame window as a step, lowest to highest run shaded, "
+    "in its own colour. Under them, where "
     "the runs logged them: Nature Fig. 2's held-out statistics at each periodic evaluation, "
     "the mean max over actions of the target network's Q at the next states of "
     "heldout_transitions transitions drawn once from the replay at replay start, and their "
@@ -69,7 +80,9 @@ ON_TRACK_TEXT = (
     "Each run measured as the reference measures: the mean raw score of its training games "
     "(whole games, at the training epsilon; `episodes.csv`) that ended in its latest 1M-frame "
     "window with a finished game, beside the reference's mean and lowest-to-highest run in "
-    f"the same window. Reference: {REFERENCE_LABEL} (data/README.md); its training epsilon "
+    "the same window. **Reference**: Dopamine's curve of the agent the run matches "
+    f"(data/README.md; {MATCHING_TEXT}: the verdict says why), scores of its "
+    f"{REFERENCE_PROTOCOL}. Its training epsilon "
     "is 0.01 after 1M frames and its actions are sticky, while the nature preset trains at "
     "an epsilon falling from 1 to 0.1 over 4M frames, so early windows of a nature run sit "
     "lower by design: read the verdict as a sanity check, not a test. A window still being "

@@ -20,7 +20,12 @@ from dqnlab.analysis.report.aggregate import (
 )
 from dqnlab.analysis.report.curves import Curve, _count_text
 from dqnlab.analysis.report.legend import LEGEND, ON_TRACK_TEXT
-from dqnlab.analysis.report.reference import REFERENCE_LABEL, WINDOW_FRAMES, OnTrackRow
+from dqnlab.analysis.report.reference import (
+    AGENTS,
+    REFERENCE_PROTOCOL,
+    WINDOW_FRAMES,
+    OnTrackRow,
+)
 from dqnlab.analysis.report.runs import Group, RunResults
 from dqnlab.analysis.report.scores import BASELINES, ResultRow, SummaryRow
 
@@ -332,8 +337,11 @@ def _aligned(headers: Sequence[str], rows: Sequence[Sequence[str]]) -> str:
 
 ON_TRACK_HEADERS = (
     "Game", "Configuration", "Seed", "Trained", "Window", "Training games", "Mean score",
-    "Reference mean", "Reference range", "Verdict", "Latest evaluation",
+    "Reference", "Reference mean", "Reference range", "Verdict", "Latest evaluation",
 )  # fmt: skip
+ON_TRACK_TITLE = (
+    f"Training games against Dopamine's curve of each run's agent; its {REFERENCE_PROTOCOL}"
+)
 
 
 def _on_track_cells(row: OnTrackRow, seed: int) -> list[str]:
@@ -356,6 +364,7 @@ def _on_track_cells(row: OnTrackRow, seed: int) -> list[str]:
         window,
         str(row.games),
         _score_text(row.score),
+        AGENTS[row.reference].name if row.reference is not None else "none",
         _score_text(row.reference_mean),
         reference_range,
         row.verdict or (row.why_none or ""),
@@ -378,7 +387,7 @@ def format_table(report: Report) -> str:
     if report.summary:
         text += "\n\n" + _aligned(SUMMARY_HEADERS, _summary_cells(report.summary))
     if report.on_track:
-        text += f"\n\nOn track? Training games against {REFERENCE_LABEL}\n"
+        text += f"\n\nOn track? {ON_TRACK_TITLE}\n"
         text += _aligned(*_on_track_table(report))
     if report.aggregates is not None:
         text += "\n\n" + _aggregate_text(report.aggregates)

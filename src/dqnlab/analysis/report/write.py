@@ -30,7 +30,13 @@ from typing import TYPE_CHECKING, Any
 from dqnlab.analysis.report.aggregate import Aggregates, AggregateSettings, aggregate_scores
 from dqnlab.analysis.report.aggregate_figures import interval_figure, profile_figure
 from dqnlab.analysis.report.curves import curve_figure, learning_curves
-from dqnlab.analysis.report.reference import REFERENCES, load_reference_curves, on_track_rows
+from dqnlab.analysis.report.reference import (
+    REFERENCES,
+    group_references,
+    load_references,
+    on_track_rows,
+    reference_notes,
+)
 from dqnlab.analysis.report.runs import Group, RunResults, find_runs, group_runs, load_run
 from dqnlab.analysis.report.scores import load_reference_scores, result_rows, summary_rows
 from dqnlab.analysis.report.tables import (
@@ -47,7 +53,6 @@ from dqnlab.analysis.report.tables import (
     format_markdown,
 )
 from dqnlab.config import DEFAULT_EVALUATION_SEED
-from dqnlab.envs import is_atari
 from dqnlab.errors import DqnlabError
 from dqnlab.run import rundir
 from dqnlab.run.evaluate import final_evaluation, final_evaluation_record
@@ -104,8 +109,9 @@ def build_report(
     with `evaluate_missing` (None: leave those runs out of the table) and compute the
     table, the curves and the aggregates across games (`aggregate`: the baseline and the
     bootstrap, None: the defaults); writes nothing but what `evaluate_missing` saves.
-    `reference`: "dopamine" draws its published curves behind the Atari games' curves and
-    sets the runs beside them in the on-track table; "none" leaves both out."""
+    `reference`: "dopamine" draws behind the Atari games' curves the published curve of
+    each agent that a configuration matches (`reference.reference_agent`) and sets each
+    run beside its own agent's in the on-track table; "none" leaves both out."""
     if reference not in REFERENCES:
         raise DqnlabError(f"--reference {reference!r} is not one of: {', '.join(REFERENCES)}")
     runs = [load_run(path) for path in find_runs(run_dirs)]
@@ -145,18 +151,16 @@ def build_report(
             notes.append(f"{game}: no run has a periodic evaluation yet: no figure")
     on_track = []
     if reference == "dopamine":
-        reference_curves = load_reference_curves(games)
+        curves_by_agent = load_references(run.config for run in runs)
         for curve in curves:
-            curve.reference = reference_curves.get(curve.game)
-        on_track = on_track_rows(
-            [(run, group.label) for group in groups for run in group.runs], reference_curves
-        )
-        missing = [game for game in games if is_atari(game) and game not in reference_curves]
-        if missing:
-            notes.append(
-                f"Dopamine's curves do not cover {', '.join(missing)}: no reference curve "
-                "or verdict for them"
+            drawn = {series.label for series in curve.series}
+            curve.references = group_references(
+                [g for g in groups if g.env == curve.game and g.label in drawn], curves_by_agent
             )
+        on_track = on_track_rows(
+            [(run, group.label) for group in groups for run in group.runs], curves_by_agent
+        )
+        notes.extend(reference_notes(groups, curves_by_agent))
     summary = summary_rows(rows)
     return Report(
         runs, groups, rows, summary, curves, notes, evaluated, [],
