@@ -122,6 +122,11 @@ class Config:
         "hidden layers); module:factory(input_shape) -> module giving (batch, features): the "
         "head of the other settings goes on it",
     )
+    policy: str = _setting(
+        "epsilon_greedy",
+        "How an action is chosen from the Q-values: epsilon_greedy (ties at random; Lua), or "
+        "module:Class, your own policy part (docs: your own variant)",
+    )
     replay_sampling: str = _setting(
         "uniform",
         "uniform, or prioritized (Schaul et al. 2016, proportional: P(i) ~ (|error| + "
@@ -226,7 +231,11 @@ CHOICES: dict[str, tuple[str, ...]] = {
     "replay_sampling": ("uniform", "prioritized"),
 }
 # Settings that take one of `CHOICES` or the `module:Name` of a user's own part.
-USER_PARTS: dict[str, tuple[str, ...]] = {"loss": ("auto",), "torso": ("auto",)}
+USER_PARTS: dict[str, tuple[str, ...]] = {
+    "loss": ("auto",),
+    "torso": ("auto",),
+    "policy": ("epsilon_greedy",),
+}
 
 
 def _validate(config: Config) -> None:
@@ -291,19 +300,18 @@ def _is_import_path(value: str) -> bool:
 
 def _validate_parts(config: Config) -> None:
     """Combinations of the update's parts that cannot work, refused before anything is built."""
-    if config.distributional != "none":
-        if config.distributional_atoms < 2:
-            raise ConfigError(
-                f"distributional_atoms = {config.distributional_atoms} must be at least 2"
-            )
-        if not config.distributional_v_min < config.distributional_v_max:
-            raise ConfigError(
-                f"distributional_v_min = {config.distributional_v_min} must be below "
-                f"distributional_v_max = {config.distributional_v_max}"
-            )
+    distributional = config.distributional != "none"
+    if distributional and config.distributional_atoms < 2:
+        raise ConfigError(
+            f"distributional_atoms = {config.distributional_atoms} must be at least 2"
+        )
+    if distributional and not config.distributional_v_min < config.distributional_v_max:
+        raise ConfigError(
+            f"distributional_v_min = {config.distributional_v_min} must be below "
+            f"distributional_v_max = {config.distributional_v_max}"
+        )
     heads = [name for name in ("dueling", "noisy") if getattr(config, name)]
-    if config.distributional != "none":
-        heads.append("distributional")
+    heads += ["distributional"] if distributional else []
     if config.torso != "auto" and config.network != "auto":
         raise ConfigError(
             f"torso = {config.torso!r} replaces the network's torso: leave network = 'auto' "
@@ -332,7 +340,7 @@ ADDED_WITH_DEFAULTS = (
     "target", "n_step", "distributional", "distributional_atoms", "distributional_v_min",
     "distributional_v_max", "loss", "dueling", "noisy", "noisy_sigma0", "torso",
     "replay_sampling", "priority_exponent", "priority_epsilon", "importance_exponent_start",
-    "max_gradient_norm",
+    "max_gradient_norm", "policy",
 )  # fmt: skip
 
 

@@ -22,6 +22,7 @@ from dqnlab.algorithm.heads import has_noise, sample_noise
 from dqnlab.algorithm.losses import Transitions, build_loss
 from dqnlab.algorithm.networks import build_q_network
 from dqnlab.algorithm.optim import build_optimizer
+from dqnlab.algorithm.policies import build_policy
 from dqnlab.algorithm.replay import Batch
 from dqnlab.config import Config
 from dqnlab.envs import Environment
@@ -78,6 +79,7 @@ class Agent:
             adam_epsilon=config.adam_epsilon,
         )
         self.loss = build_loss(config)
+        self.policy = build_policy(config, num_actions)
         self.rng = np.random.default_rng(seed)
         # Noisy layers draw from a generator of their own (on the device), saved with the
         # agent so that a resumed run draws the same noise.
@@ -122,26 +124,17 @@ class Agent:
             )
 
     def act(self, stacked_observation: np.ndarray, epsilon: float, training: bool = False) -> int:
-        """Epsilon-greedy on one stacked observation (`epsilon_greedy`). In `training`, a
+        """The policy's action on one stacked observation (`choose`). In `training`, a
         network with noisy layers acts with fresh noise; otherwise with its mean weights."""
         if training and self.noisy:
-            return self.epsilon_greedy(
-                epsilon, lambda: self._noisy_q_values(stacked_observation[None])[0]
-            )
-        return self.epsilon_greedy(epsilon, lambda: self.q_values(stacked_observation[None])[0])
+            return self.choose(epsilon, lambda: self._noisy_q_values(stacked_observation[None])[0])
+        return self.choose(epsilon, lambda: self.q_values(stacked_observation[None])[0])
 
-    def epsilon_greedy(
-        self, epsilon: float, q_values: np.ndarray | Callable[[], np.ndarray]
-    ) -> int:
-        """A uniform random action with probability `epsilon`, else the action of the highest
-        Q-value, ties going to a random one of them (Lua NeuralQLearner:greedy). `q_values`
-        may be a function, called only when the choice is greedy (a random action needs no
-        forward pass)."""
-        if self.rng.random() < epsilon:
-            return int(self.rng.integers(self.num_actions))
-        values = q_values() if callable(q_values) else q_values
-        best = np.flatnonzero(values == values.max())
-        return int(best[0] if len(best) == 1 else self.rng.choice(best))
+    def choose(self, epsilon: float, q_values: np.ndarray | Callable[[], np.ndarray]) -> int:
+        """The policy part's action (`policies.build_policy`: epsilon-greedy unless `policy`
+        says otherwise), with the agent's generator. `q_values` may be a function, called
+        only when the policy needs them (a random action needs no forward pass)."""
+        return self.policy.choose(q_values, epsilon, self.rng)
 
     def q_values(self, stacked_observations: np.ndarray) -> np.ndarray:
         """Q-values of the online network in eval mode (matters for dropout/batch norm, and

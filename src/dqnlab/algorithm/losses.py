@@ -20,7 +20,6 @@ usually by subclassing one of these and overriding one method (`TDLoss.targets`,
 
 from __future__ import annotations
 
-import importlib
 from dataclasses import dataclass
 
 import torch
@@ -29,6 +28,7 @@ from torch import nn
 
 from dqnlab.config import Config
 from dqnlab.errors import ConfigError
+from dqnlab.parts import load_part
 
 
 @dataclass(frozen=True)
@@ -188,15 +188,7 @@ def build_loss(config: Config) -> Loss:
     user's `module:Class`, built as `Class(config)`."""
     if config.loss == "auto":
         return CategoricalLoss(config) if config.distributional == "c51" else TDLoss(config)
-    module_name, _, attribute = config.loss.partition(":")
-    try:
-        part_class = getattr(importlib.import_module(module_name), attribute)
-    except (ImportError, AttributeError) as error:
-        raise ConfigError(f"loss = {config.loss!r} cannot be loaded: {error}") from None
-    try:
-        part = part_class(config)
-    except Exception as error:  # noqa: BLE001 - the user's code: report, don't crash
-        raise ConfigError(f"loss = {config.loss!r} failed to build: {error!r}") from None
+    part = load_part("loss", config.loss, config)
     if not callable(part):
         raise ConfigError(f"loss = {config.loss!r} built {type(part).__name__}, not callable")
     return part  # type: ignore[no-any-return]

@@ -61,7 +61,7 @@ class _ActingBatch:
             np.take(histories, self.active_rows, axis=0, out=inputs, mode="clip")
         q_values = agent.q_values(inputs)
         for row, i in enumerate(self.active):
-            actions[i] = agent.epsilon_greedy(epsilon, q_values[row])
+            actions[i] = agent.choose(epsilon, q_values[row])
 
     def record(
         self,
