@@ -17,7 +17,7 @@ import dqnlab
 
 PACKAGE = Path(dqnlab.__file__).parent
 # A module's layer, from its path; a module may import its own layer and those below.
-LAYERS = ["errors", "config", "envs", "algorithm", "run", "analysis", "sweeps", "bench", "cli"]
+LAYERS = ["errors", "parts", "config", "envs", "algorithm", "run", "analysis", "sweeps", "bench", "cli"]
 MAX_MODULE_LINES = 500
 
 
