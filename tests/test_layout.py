@@ -17,7 +17,9 @@ import dqnlab
 
 PACKAGE = Path(dqnlab.__file__).parent
 # A module's layer, from its path; a module may import its own layer and those below.
-LAYERS = ["errors", "parts", "config", "envs", "algorithm", "run", "analysis", "sweeps", "bench", "cli"]
+LAYERS = [
+    "errors", "parts", "config", "envs", "algorithm", "run", "analysis", "sweeps", "bench", "cli",
+]  # fmt: skip
 MAX_MODULE_LINES = 500
 
 

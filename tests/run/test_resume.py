@@ -47,6 +47,7 @@ RAINBOW_CARTPOLE = [
     "--set", "distributional=c51", "--set", "n_step=3", "--set", "replay_sampling=prioritized",
     "--set", "optimizer=adam", "--set", "learning_rate=0.0005", "--set", "loss_reduction=mean",
     "--set", "max_gradient_norm=10", "--set", "epsilon_start=0", "--set", "epsilon_end=0",
+    "--set", "mlp_hidden_sizes=[64, 64]", "--set", "distributional_atoms=11",  # CI's time
 ]  # fmt: skip
 PONG = [
     "--env", "pong", "--steps", "700", "--seed", "3",
