@@ -9,7 +9,7 @@ decompressed whole when the ring does: one chunk's worth of work every 16k steps
 acting thread, so that the frames and the order of everything stay deterministic.
 Consecutive frames of a game differ little, so a block of four compresses far better than
 four single frames; a window of history + 1 = 5 slots always touches exactly two blocks.
-The codec was chosen by measurement (README, "Compressed replay"): LZ4 decompresses a
+The codec was chosen by measurement (docs/benchmark.md, "Compressed replay"): LZ4 decompresses a
 minibatch's blocks faster than zstd does at compression ratios well past the target.
 
 A chunk's compressed form is what a checkpoint writes and reads back, byte for byte: the

@@ -45,8 +45,7 @@ DEFAULT_RENDER_FPS = 30  # for a Gymnasium env whose metadata gives no render_fp
 # at half resolution: at 1x the colour of one-pixel details (Breakout's bricks) bleeds,
 # 1% of pixel values off by 36 or more; at 2x by 3 or less, for 10% more bytes.
 ATARI_MP4_SCALE = 2
-# x264 constant rate factor: visually lossless, and a 5-minute game is a few MB at most
-# (the README gives file sizes).
+# x264 constant rate factor: visually lossless, and a 5-minute game is a few MB at most.
 MP4_CRF = 18
 GIF_MAX_FPS = 25
 

@@ -120,7 +120,8 @@ class FramePreprocessor:
         if self._truncate:
             # The Lua code's (uint8)(255 * y). The 1/1000 grey level keeps float noise (an
             # exact 142 computed as 141.99998) from costing a level, as it often did in the
-            # Lua code's float32 arithmetic (README, "Where dqnlab departs from the Lua code").
+            # Lua code's float32 arithmetic (docs/nature.md, "Where dqnlab departs from the
+            # Lua code").
             np.add(self._resized, _TRUNCATION_GUARD, out=self._resized)
             np.floor(self._resized, out=self._resized)
         else:

@@ -70,7 +70,7 @@ class GymnasiumEnv:
         RNG); an environment that cannot be pickled resumes with a new episode.
 
         Gymnasium has no other general way to save an environment's state, so resuming
-        unpickles it, which can run any code the file names: the README's Resuming section
+        unpickles it, which can run any code the file names: docs/resuming.md
         tells users to resume only run directories they trust as they trust code.
         """
         try:

@@ -18,7 +18,7 @@ lockd, some client mounts with `nolock`, and a node cut off from the cluster kee
 lock until the server notices). The lease uses only what NFS does guarantee: `link()`
 to create the file is atomic on the server (the classic NFS-safe lock file), `rename()`
 replaces it atomically, and close-to-open consistency means a reader that opens the file
-sees what the last writer closed. Two assumptions, stated in the README: the nodes'
+sees what the last writer closed. Two assumptions, stated in docs/clusters.md: the nodes'
 clocks agree to well within TAKEOVER_GRACE_SECONDS (NTP), and the attribute cache
 (`actimeo`, 60 s at most by default) is shorter than LEASE_SECONDS + the grace, so a
 taker never acts on a stale view of a live lease.

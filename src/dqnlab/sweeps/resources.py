@@ -10,7 +10,7 @@ from dqnlab.errors import DqnlabError
 from dqnlab.sweeps.grid import Sweep
 
 # Host memory of a `dqnlab train` process besides its replay: peak RSS of tiny runs
-# (replay of 1,000 slots) measured with `/usr/bin/time -v` (README, figures), 0.9 GB on
+# (replay of 1,000 slots) measured with `/usr/bin/time -v` (docs/benchmark.md, figures), 0.9 GB on
 # CartPole and 1.1 GB on Pong, rounded up for the evaluation's worker processes.
 PROCESS_OVERHEAD_BYTES = 1_500_000_000
 VECTOR_SLOT_BYTES = 1024  # a vector observation's slot: up to 256 float32 features

@@ -30,7 +30,7 @@ from dqnlab.analysis.report.scores import (
 )
 from dqnlab.errors import DqnlabError
 
-# 10,000 rather than the 50,000 rliable defaults to: the README's figures table gives the
+# 10,000 rather than the 50,000 rliable defaults to: docs/benchmark.md's figures table gives the
 # time for 57 games x 5 seeds x 2 configurations and how little the bounds move.
 DEFAULT_BOOTSTRAP_REPETITIONS = 10_000
 DEFAULT_BOOTSTRAP_SEED = 0
@@ -325,7 +325,7 @@ def probability_of_improvement(scores: np.ndarray, other: np.ndarray) -> np.ndar
 
     rliable's own calls scipy's Mann-Whitney test once per game, which also works out a
     p-value it discards, and the bootstrap calls it games x repetitions times: minutes
-    per pair of configurations over 57 games (the README's figures table). The statistic
+    per pair of configurations over 57 games (docs/benchmark.md's figures table). The statistic
     it keeps, U / (runs x other runs), is the fraction of pairs of runs in which the
     first scores higher, ties counting half: the same number, from one array operation."""
     difference = scores[:, np.newaxis, :] - other[np.newaxis, :, :]  # run, other run, game
