@@ -96,6 +96,8 @@ def final_state(run: Path) -> tuple[dict, dict[str, np.ndarray]]:
 def _frame_layout(config) -> tuple[tuple[int, ...], np.dtype]:
     if config.env == "CartPole-v1":
         return (4,), np.dtype(np.float32)
+    if config.env.endswith(":NestedDictEnv"):
+        return (32,), np.dtype(np.uint8)  # rows of the packed Dict (tests/envs/test_spaces.py)
     return (84, 84), np.dtype(np.uint8)
 
 
@@ -114,7 +116,13 @@ def assert_identical(a, b, where: str = "state") -> None:
         assert np.array_equal(a, b), where
     elif where.endswith("env.env"):  # a pickled Gymnasium env: compare what it holds
         env_a, env_b = pickle.loads(a).unwrapped, pickle.loads(b).unwrapped
-        assert np.array_equal(env_a.state, env_b.state), where
+        if hasattr(env_a, "state"):  # CartPole
+            assert np.array_equal(env_a.state, env_b.state), where
+        else:  # the cue games of tests/envs/space_envs.py: every attribute of the game
+            assert (env_a.t, env_a.cue) == (env_b.t, env_b.cue), where
+            plain = (bool, int, float, str, type(None))
+            same = {k: v for k, v in vars(env_a).items() if isinstance(v, plain)}
+            assert same == {k: vars(env_b)[k] for k in same}, where
         assert env_a.np_random.bit_generator.state == env_b.np_random.bit_generator.state
     else:
         assert a == b, where
@@ -156,8 +164,19 @@ def assert_same_run(reference: Path, resumed: Path) -> None:
         assert steps == sorted(steps) and len(steps) == len(set(steps)), tag  # no duplicates
 
 
+# A structured observation (a nested Dict packed into rows: envs/spaces.py) with a history
+# of two across episode starts, through the multi_input network.
+NESTED_DICT = [
+    "--env", "tests.envs.space_envs:NestedDictEnv", *CARTPOLE[2:],
+    "--set", "history_length=2", "--set", "mlp_hidden_sizes=[32]", "--steps", "1500",
+    "--set", "eval_period_steps=500",
+]  # fmt: skip
+
+
 @pytest.mark.parametrize(
-    "args", [CARTPOLE, RAINBOW_CARTPOLE, PONG], ids=["cartpole", "rainbow-cartpole", "pong"]
+    "args",
+    [CARTPOLE, RAINBOW_CARTPOLE, PONG, NESTED_DICT],
+    ids=["cartpole", "rainbow-cartpole", "pong", "nested-dict"],
 )
 def test_sigkill_at_random_moments_then_resume_is_bit_identical(tmp_path: Path, args) -> None:
     reference, resumed = tmp_path / "reference", tmp_path / "resumed"

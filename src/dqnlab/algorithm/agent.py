@@ -20,12 +20,13 @@ from torch import nn
 
 from dqnlab.algorithm.heads import has_noise, sample_noise
 from dqnlab.algorithm.losses import Transitions, build_loss
-from dqnlab.algorithm.networks import build_q_network
+from dqnlab.algorithm.networks import build_q_network, recorded_network_name
 from dqnlab.algorithm.optim import build_optimizer
 from dqnlab.algorithm.policies import build_policy
 from dqnlab.algorithm.replay import Batch
 from dqnlab.config import Config
 from dqnlab.envs import Environment
+from dqnlab.envs.spaces import ObservationLayout
 from dqnlab.errors import ConfigError
 
 
@@ -57,9 +58,11 @@ class Agent:
         input_shape: tuple[int, ...] | None = None,
         observation_dtype: np.dtype | None = None,
         action_names: Sequence[str] | None = None,
+        observation_layout: ObservationLayout | None = None,
     ) -> None:
-        """`input_shape`, `observation_dtype`, `action_names`: what the network takes and
-        chooses among, where known (players of several environments need them).
+        """`input_shape`, `observation_dtype`, `action_names`, `observation_layout`: what
+        the network takes and chooses among, where known (players of several environments
+        need them; network files record them).
 
         `compile_update` (opt-in): compile the loss with its backward pass and the
         optimizer step with `torch.compile`. The same arithmetic, fused into fewer passes
@@ -92,6 +95,7 @@ class Agent:
             np.dtype(observation_dtype) if observation_dtype is not None else None
         )
         self.action_names = list(action_names) if action_names is not None else None
+        self.observation_layout = observation_layout
         if config.replay_sampling == "prioritized" and config.loss != "auto":
             self._check_priorities()
         self._optimizer_step: Callable[[], object] = self.optimizer.step
@@ -252,7 +256,13 @@ def build_agent(config: Config, env: Environment, device: torch.device, seed: in
     """The configured network for this environment, wrapped in an agent."""
     input_shape = (config.history_length, *env.observation_shape)
     return agent_for_input(
-        config, input_shape, env.observation_dtype, env.action_names, device, seed
+        config,
+        input_shape,
+        env.observation_dtype,
+        env.action_names,
+        device,
+        seed,
+        getattr(env, "observation_layout", None),
     )
 
 
@@ -263,14 +273,17 @@ def agent_for_input(
     action_names: Sequence[str],
     device: torch.device,
     seed: int,
+    layout: ObservationLayout | None = None,
 ) -> Agent:
     """The configured network for inputs of `input_shape` (history, *observation shape)
-    and one Q-value per action of `action_names`, wrapped in an agent."""
+    and one Q-value per action of `action_names`, wrapped in an agent. `layout`: how the
+    observations are stored (`envs/spaces.py`); None for a single frame (Atari's)."""
     network = build_q_network(
         config,
         input_shape,
         len(action_names),
         is_image_observation(input_shape[1:], observation_dtype),
+        layout,
     )
     return Agent(
         network,
@@ -282,4 +295,13 @@ def agent_for_input(
         input_shape=input_shape,
         observation_dtype=observation_dtype,
         action_names=action_names,
+        observation_layout=layout,
     )
+
+
+def recorded_network(config: Config, agent: Agent) -> str:
+    """The network setting a new run records for this agent (`recorded_network_name`)."""
+    if agent.input_shape is None or agent.observation_dtype is None:
+        return config.network
+    is_image = is_image_observation(agent.input_shape[1:], agent.observation_dtype)
+    return recorded_network_name(config.network, is_image, agent.observation_layout)

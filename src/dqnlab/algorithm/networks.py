@@ -1,5 +1,6 @@
-"""Q-networks: the Nature CNN for images, an MLP for vectors, a user's own network, or a
-torso with the DQN family's heads.
+"""Q-networks: the Nature CNN for images, an MLP for vectors, a small CNN for small images,
+a network over every part of a structured observation, a user's own network, or a torso
+with the DQN family's heads.
 
 A network takes a batch of stacked observations of shape (batch, history, *frame_shape)
 in their stored dtype (uint8 images are scaled by 1/255 inside) and returns one Q-value
@@ -10,6 +11,10 @@ per action. `build_q_network` builds the one a configuration asks for:
   heads existed, so that a seed gives the same parameters and older network files load;
 - otherwise a torso (`NatureTorso`, `MLPTorso`, or the user's `torso = module:factory`)
   under a `heads.QHead`: a `QNetwork`, or with C51 a `DistributionalQNetwork`.
+
+Observations other than a uint8 image or a float vector come packed (`envs/spaces.py`):
+their networks read them through `encoders.ObservationEncoder` (`EncodedNetwork`), as does
+the small CNN. `auto` picks by the observation's layout (`_network_name`).
 
 A user's network factory is called as `factory(input_shape, num_actions)` and a torso
 factory as `factory(input_shape)`, with `input_shape = (history, *frame_shape)`; each
@@ -28,8 +33,10 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from dqnlab.algorithm.encoders import SMALL_CNN_HIDDEN_WIDTH, ObservationEncoder, is_small
 from dqnlab.algorithm.heads import QHead
 from dqnlab.config import Config
+from dqnlab.envs.spaces import ObservationLayout
 from dqnlab.errors import ConfigError
 
 NATURE_HIDDEN_WIDTH = 512  # Mnih et al. 2015, Methods: the fully connected layer's units
@@ -139,6 +146,35 @@ class MLPTorso(nn.Module):
         return self.layers(observations.float())
 
 
+class EncodedNetwork(nn.Module):
+    """An observation encoder (`encoders.ObservationEncoder`), hidden layers of
+    `hidden_sizes` units with ReLU, and one Q-value per action."""
+
+    def __init__(
+        self, encoder: ObservationEncoder, num_actions: int, hidden_sizes: Sequence[int]
+    ) -> None:
+        super().__init__()
+        self.encoder = encoder
+        hidden, width = _hidden_layers(encoder.output_size, hidden_sizes)
+        self.layers = nn.Sequential(*hidden, nn.Linear(width, num_actions))
+
+    def forward(self, observations: torch.Tensor) -> torch.Tensor:
+        return self.layers(self.encoder(observations))
+
+
+class EncodedTorso(nn.Module):
+    """An observation encoder and hidden layers: `output_size` features per input."""
+
+    def __init__(self, encoder: ObservationEncoder, hidden_sizes: Sequence[int]) -> None:
+        super().__init__()
+        self.encoder = encoder
+        hidden, self.output_size = _hidden_layers(encoder.output_size, hidden_sizes)
+        self.layers = nn.Sequential(*hidden)
+
+    def forward(self, observations: torch.Tensor) -> torch.Tensor:
+        return self.layers(self.encoder(observations))
+
+
 def _hidden_layers(inputs: int, widths: Sequence[int]) -> tuple[list[nn.Module], int]:
     """Linear layers of `widths` units with ReLU, and the width of the last."""
     layers: list[nn.Module] = []
@@ -206,16 +242,22 @@ class DistributionalQNetwork(QNetwork):
 
 
 def build_q_network(
-    config: Config, input_shape: tuple[int, ...], num_actions: int, is_image: bool
+    config: Config,
+    input_shape: tuple[int, ...],
+    num_actions: int,
+    is_image: bool,
+    layout: ObservationLayout | None = None,
 ) -> nn.Module:
     """The Q-network `config` asks for, for inputs of `input_shape` (history, *observation
     shape) and `num_actions` actions: `build_network`'s network when every head setting
-    (dueling, noisy, distributional, torso) holds its default, else a torso with a head."""
+    (dueling, noisy, distributional, torso) holds its default, else a torso with a head.
+    `layout`: the observation's (`envs/spaces.py`); None: a single frame, an image when
+    `is_image`, else a vector."""
     if not _has_torso_and_head(config):
         return build_network(
-            config.network, input_shape, num_actions, is_image, config.mlp_hidden_sizes
+            config.network, input_shape, num_actions, is_image, config.mlp_hidden_sizes, layout
         )
-    torso = build_torso(config, input_shape, is_image)
+    torso = build_torso(config, input_shape, is_image, layout)
     c51 = config.distributional == "c51"
     head = QHead(
         torso.output_size,
@@ -249,19 +291,33 @@ class Torso(NamedTuple):
     head_hidden_width: int | None
 
 
-def build_torso(config: Config, input_shape: tuple[int, ...], is_image: bool) -> Torso:
+def build_torso(
+    config: Config,
+    input_shape: tuple[int, ...],
+    is_image: bool,
+    layout: ObservationLayout | None = None,
+) -> Torso:
     """The torso of `config`: the user's `torso = module:factory` (its head has no hidden
     layer), or that of the network setting: the Nature CNN's convolutions (its head the
-    Nature CNN's layer of 512), or the MLP's hidden layers but the last (its head that)."""
+    Nature CNN's layer of 512), the small CNN's convolution (its head the layer of 128), or
+    the MLP's hidden layers but the last (its head that)."""
     if config.torso != "auto":
-        module, probe = _user_module("torso", config.torso, (input_shape,), input_shape, is_image)
+        module, probe = _user_module(
+            "torso", config.torso, (input_shape,), input_shape, _probe_dtype(is_image, layout)
+        )
         if probe.ndim != 2 or probe.shape[0] != 2 or probe.shape[1] == 0:
             raise ConfigError(
                 f"torso {config.torso!r} returns shape {tuple(probe.shape)} for a batch of 2; "
                 "expected (2, features)"
             )
         return Torso(module, int(probe.shape[1]), None)
-    name = _network_name(config.network, is_image)
+    name = _network_name(config.network, is_image, layout)
+    if name in ENCODED_NETWORKS or (layout is not None and layout.packed):
+        assert layout is not None
+        widths = _encoded_widths(name, config.mlp_hidden_sizes)
+        encoder = _encoder(name, layout, input_shape[0])
+        torso = EncodedTorso(encoder, widths[:-1])
+        return Torso(torso, torso.output_size, widths[-1] if widths else None)
     if name == "nature_cnn":
         nature = NatureTorso(input_shape)
         return Torso(nature, nature.output_size, NATURE_HIDDEN_WIDTH)
@@ -279,16 +335,20 @@ def build_network(
     num_actions: int,
     is_image: bool,
     mlp_hidden_sizes: Sequence[int] = (256, 256),
+    layout: ObservationLayout | None = None,
 ) -> nn.Module:
-    """The network setting's Q-network: `auto` picks the Nature CNN for images and the MLP
-    for vectors."""
-    name = _network_name(name, is_image)
+    """The network setting's Q-network (`auto`: `_network_name`)."""
+    name = _network_name(name, is_image, layout)
+    if name in ENCODED_NETWORKS or (layout is not None and layout.packed and ":" not in name):
+        assert layout is not None
+        encoder = _encoder(name, layout, input_shape[0])
+        return EncodedNetwork(encoder, num_actions, _encoded_widths(name, mlp_hidden_sizes))
     if name == "nature_cnn":
         return NatureCNN(input_shape, num_actions)
     if name == "mlp":
         return MLP(input_shape, num_actions, mlp_hidden_sizes)
     network, probe = _user_module(
-        "network", name, (input_shape, num_actions), input_shape, is_image
+        "network", name, (input_shape, num_actions), input_shape, _probe_dtype(is_image, layout)
     )
     if tuple(probe.shape) != (2, num_actions):
         raise ConfigError(
@@ -298,17 +358,70 @@ def build_network(
     return network
 
 
-def _network_name(name: str, is_image: bool) -> str:
-    """The network setting with `auto` resolved; refuses a CNN for vectors and unknown names."""
+# Networks that read their input through `encoders.ObservationEncoder` whatever the layout.
+ENCODED_NETWORKS = ("small_cnn", "multi_input")
+NETWORK_NAMES = ("auto", "nature_cnn", "small_cnn", "multi_input", "mlp")
+
+
+def recorded_network_name(name: str, is_image: bool, layout: ObservationLayout | None) -> str:
+    """The network setting a new run records: `auto` written out as the network it chose
+    when that is one of `ENCODED_NETWORKS` (the small CNN, multi_input: added for small
+    images and structured observations), so that the run's config says which ran; else
+    the setting as given (older runs' `auto` stays `auto`)."""
+    if name != "auto":
+        return name
+    chosen = _network_name(name, is_image, layout)
+    return chosen if chosen in ENCODED_NETWORKS else name
+
+
+def _network_name(name: str, is_image: bool, layout: ObservationLayout | None = None) -> str:
+    """The network setting with `auto` resolved; refuses a network that cannot read the
+    observation, and unknown names.
+
+    `auto`: a single image, the Nature CNN when both sides are at least 36 pixels, else
+    the small CNN; no image, the MLP; images among other parts, `multi_input` (an encoder
+    per part, then the MLP's hidden layers)."""
+    images = layout.images if layout is not None else ()
+    single_image = (len(layout.parts) == 1 and len(images) == 1) if layout else is_image
     if name == "auto":
-        return "nature_cnn" if is_image else "mlp"
-    if name == "nature_cnn" and not is_image:
-        raise ConfigError("network = 'nature_cnn' needs image observations; use mlp or auto")
-    if name not in ("nature_cnn", "mlp") and ":" not in name:
+        if single_image:
+            return "small_cnn" if images and is_small(images[0]) else "nature_cnn"
+        return "multi_input" if images else "mlp"
+    if name not in NETWORK_NAMES and ":" not in name:
         raise ConfigError(
-            f"network = {name!r} is not one of: auto, nature_cnn, mlp, or module:factory"
+            f"network = {name!r} is not one of: {', '.join(NETWORK_NAMES)}, or module:factory"
         )
+    if name in ("nature_cnn", "small_cnn") and not single_image:
+        raise ConfigError(
+            f"network = {name!r} needs observations that are one image; use multi_input or auto"
+        )
+    if name == "small_cnn" and layout is None:
+        raise ConfigError("network = 'small_cnn' needs the observation's layout")
     return name
+
+
+def _encoder(name: str, layout: ObservationLayout, history: int) -> ObservationEncoder:
+    small = {"small_cnn": True, "nature_cnn": False}.get(name)
+    try:
+        return ObservationEncoder(layout, history, small_images=small)
+    except ValueError as error:
+        raise ConfigError(f"network = {name!r}: {error}") from None
+
+
+def _encoded_widths(name: str, mlp_hidden_sizes: Sequence[int]) -> tuple[int, ...]:
+    """The hidden layers after the encoder: MinAtar's 128 for the small CNN, the Nature
+    CNN's 512 for a packed image through its convolutions, else the MLP's."""
+    if name == "small_cnn":
+        return (SMALL_CNN_HIDDEN_WIDTH,)
+    if name == "nature_cnn":
+        return (NATURE_HIDDEN_WIDTH,)
+    return tuple(mlp_hidden_sizes)
+
+
+def _probe_dtype(is_image: bool, layout: ObservationLayout | None) -> torch.dtype:
+    if layout is not None and layout.packed:
+        return torch.uint8
+    return torch.uint8 if is_image else torch.float32
 
 
 def _user_module(
@@ -316,7 +429,7 @@ def _user_module(
     name: str,
     arguments: tuple[object, ...],
     input_shape: tuple[int, ...],
-    is_image: bool,
+    probe_dtype: torch.dtype,
 ) -> tuple[nn.Module, torch.Tensor]:
     """The module `factory(*arguments)` of the setting's `module:factory`, and its output for
     a probe batch of 2 zero inputs in the stored dtype; the user's code failing in any way
@@ -332,7 +445,7 @@ def _user_module(
         raise ConfigError(f"{setting} factory {name!r} failed: {error!r}") from None
     if not isinstance(module, nn.Module):
         raise ConfigError(f"{setting} factory {name!r} returned {type(module)}, not nn.Module")
-    probe = torch.zeros((2, *input_shape), dtype=torch.uint8 if is_image else torch.float32)
+    probe = torch.zeros((2, *input_shape), dtype=probe_dtype)
     try:
         with torch.no_grad():
             output = module(probe)

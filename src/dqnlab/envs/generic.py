@@ -1,4 +1,8 @@
-"""Any Gymnasium environment with a Discrete action space, seen through dqnlab's env API."""
+"""Any Gymnasium environment with a Discrete action space, seen through dqnlab's env API.
+
+Its observations are stored as `envs/spaces.py` lays them out: uint8 images (channels
+first) and float vectors as frames of their own, anything else packed into rows of bytes.
+"""
 
 from __future__ import annotations
 
@@ -10,44 +14,37 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
+from dqnlab.envs.spaces import ObservationLayout, observation_layout
 from dqnlab.errors import EnvError
 
 
-def observation_layout(space: gym.Space) -> tuple[tuple[int, ...], np.dtype, bool]:
-    """(stored frame shape, dtype, channels-last image?) for an observation space."""
-    if not isinstance(space, gym.spaces.Box):
-        raise EnvError(
-            f"observation space {space} is not supported; dqnlab accepts Box observations "
-            "(vectors, or images of shape (H, W) or (H, W, C))"
-        )
-    shape = tuple(int(n) for n in space.shape)
-    if space.dtype == np.uint8 and len(shape) == 3:
-        height, width, channels = shape
-        return (channels, height, width), np.dtype(np.uint8), True
-    if space.dtype == np.uint8 and len(shape) == 2:
-        return shape, np.dtype(np.uint8), False
-    if len(shape) == 1:
-        return shape, np.dtype(np.float32), False
-    raise EnvError(
-        f"observation space {space} is not supported; dqnlab accepts 1-D vectors or uint8 "
-        "images of shape (H, W) or (H, W, C)"
-    )
-
-
 class GymnasiumEnv:
-    """Wraps a Gymnasium env: float32 vectors, or uint8 images moved to channels-first."""
+    """Wraps a Gymnasium env; `observation_images` is the setting of that name
+    (`envs/spaces.py`: how Box parts are read)."""
 
-    def __init__(self, env: gym.Env, *, seed: int, max_episode_steps: int = 0) -> None:
+    def __init__(
+        self,
+        env: gym.Env,
+        *,
+        seed: int,
+        max_episode_steps: int = 0,
+        observation_images: str = "auto",
+    ) -> None:
+        name = env.spec.id if env.spec else type(env.unwrapped).__name__
         if not isinstance(env.action_space, gym.spaces.Discrete):
-            name = env.spec.id if env.spec else type(env.unwrapped).__name__
             raise EnvError(
-                f"{name}: action space {env.action_space} is not supported; "
-                "DQN needs a Discrete action space"
+                f"{name}: DQN needs a Discrete action space (one Q-value per action); this "
+                f"environment's is {env.action_space}"
             )
         self.env = env
-        self.observation_shape, self.observation_dtype, self._channels_last = observation_layout(
-            env.observation_space
-        )
+        try:
+            self.observation_layout: ObservationLayout = observation_layout(
+                env.observation_space, observation_images
+            )
+        except EnvError as error:
+            raise EnvError(f"{name}: {error}") from None
+        self.observation_shape = self.observation_layout.frame_shape
+        self.observation_dtype = self.observation_layout.frame_dtype
         self.num_actions = int(env.action_space.n)
         self._action_start = int(env.action_space.start)
         meanings = getattr(env.unwrapped, "get_action_meanings", None)
@@ -114,12 +111,8 @@ class GymnasiumEnv:
         registered = self.env.spec.max_episode_steps if self.env.spec is not None else None
         return self.max_episode_steps or int(registered or 0)
 
-    def _convert(self, observation: np.ndarray) -> np.ndarray:
-        array = np.asarray(observation)
-        if self._channels_last:
-            array = array.transpose(2, 0, 1)
-        self._observation[...] = array
-        return self._observation
+    def _convert(self, observation: Any) -> np.ndarray:
+        return self.observation_layout.pack(observation, self._observation)
 
     def reset(self, new_game: bool = False) -> np.ndarray:
         """A new episode (every Gymnasium reset is a new game)."""
@@ -151,6 +144,13 @@ class GymnasiumEnv:
         except gym.error.Error as error:  # e.g. pygame missing for the classic-control envs
             name = self.env.spec.id if self.env.spec else type(self.env.unwrapped).__name__
             raise EnvError(f"{name} cannot render its frames: {error}") from None
+        if not isinstance(frame, np.ndarray) or frame.ndim != 3:
+            name = self.env.spec.id if self.env.spec else type(self.env.unwrapped).__name__
+            modes = self.env.metadata.get("render_modes", [])
+            raise EnvError(
+                f"{name} does not render rgb_array frames (its render modes: "
+                f"{', '.join(modes) or 'none'}), so no video can be made of it"
+            )
         self.frame_callback(frame)
 
     def close(self) -> None:

@@ -32,6 +32,7 @@ state; `checkpoints` owns those.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import re
@@ -46,6 +47,7 @@ import torch
 
 from dqnlab import __version__
 from dqnlab.algorithm.agent import Agent, agent_for_input
+from dqnlab.algorithm.networks import ENCODED_NETWORKS
 from dqnlab.config import (
     Config,
     config_fingerprint,
@@ -54,6 +56,7 @@ from dqnlab.config import (
     derive_seeds,
     differing_settings,
 )
+from dqnlab.envs.spaces import ObservationLayout
 from dqnlab.errors import DqnlabError
 
 if sys.version_info >= (3, 11):
@@ -203,7 +206,9 @@ def prepare_run_dir(run_dir: Path, force: bool, config: Config | None = None) ->
                 f"(no {CONFIG_FILE}); choose an empty or new --run-dir"
             )
         elif is_run_dir(run_dir) and config is not None:
-            differing = differing_settings(load_run_config(run_dir), config)
+            saved = load_run_config(run_dir)
+            config = with_recorded_network(config, saved)
+            differing = differing_settings(saved, config)
             if not differing:
                 update_run_config(run_dir, config)
                 return True
@@ -219,6 +224,14 @@ def prepare_run_dir(run_dir: Path, force: bool, config: Config | None = None) ->
             )
     run_dir.mkdir(parents=True, exist_ok=True)
     return False
+
+
+def with_recorded_network(config: Config, saved: Config) -> Config:
+    """`config` with `network = auto` read as the network the saved run wrote out for it
+    (`networks.recorded_network_name`), so that the same command continues the run."""
+    if config.network == "auto" and saved.network in ENCODED_NETWORKS:
+        return dataclasses.replace(config, network=saved.network)
+    return config
 
 
 def update_run_config(run_dir: Path, config: Config) -> None:
@@ -245,8 +258,10 @@ def network_payload(
     step: int,
     network: torch.nn.Module,
     eval_mean: float | None = None,
+    layout: ObservationLayout | None = None,
 ) -> dict[str, Any]:
-    """What a network file holds: the network and everything needed to play it."""
+    """What a network file holds: the network and everything needed to play it (with
+    the observation's layout when it is not a single frame: `envs/spaces.py`)."""
     payload = {
         "config": config.to_dict(),
         "input_shape": tuple(input_shape),
@@ -257,6 +272,8 @@ def network_payload(
     }
     if eval_mean is not None:
         payload["eval_mean"] = eval_mean
+    if layout is not None:
+        payload["observation_layout"] = layout.to_dict()
     return payload
 
 
@@ -316,12 +333,25 @@ def agent_from_network(
         action_names,
         device,
         agent_seed,
+        _observation_layout(payload, path),
     )
     try:
         agent.online.load_state_dict(payload["network"])
     except RuntimeError as error:
         raise DqnlabError(f"network file {path} does not fit its network: {error}") from None
     return agent, config, env_seed
+
+
+def _observation_layout(payload: dict[str, Any], path: Path) -> ObservationLayout | None:
+    """The layout stored beside the network; None (a single frame) in files without one."""
+    if "observation_layout" not in payload:
+        return None
+    try:
+        return ObservationLayout.from_dict(payload["observation_layout"])
+    except (KeyError, TypeError, ValueError) as error:
+        raise DqnlabError(
+            f"network file {path} has an unreadable observation layout: {error}"
+        ) from None
 
 
 def _observation_dtype(payload: dict[str, Any], input_shape: tuple[int, ...]) -> np.dtype:

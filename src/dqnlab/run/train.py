@@ -24,6 +24,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from dqnlab.algorithm.agent import recorded_network
 from dqnlab.config import Config, config_fingerprint
 from dqnlab.errors import DqnlabError
 from dqnlab.run import rundir
@@ -132,10 +133,15 @@ class TrainingLoop:
     ) -> None:
         if uses_wandb(config):
             import_wandb()  # without the extra, one line now, before anything is built
-        self.config = config
         self.run_dir = run_dir
         self.lease = lease
         self.state = TrainingState(config, device)
+        # The network `auto` chose, written out where it is one of the newer kinds.
+        if resume:
+            config = rundir.with_recorded_network(config, rundir.load_run_config(run_dir))
+        else:
+            config = dataclasses.replace(config, network=recorded_network(config, self.state.agent))
+        self.config = config
         self.store = CheckpointStore(run_dir, keep=config.checkpoints_kept)
         self.fingerprint = config_fingerprint(config)
         self.progress = RunProgress()
@@ -353,6 +359,7 @@ class TrainingLoop:
             step,
             self.state.agent.online,
             eval_mean,
+            self.state.agent.observation_layout,
         )
 
 

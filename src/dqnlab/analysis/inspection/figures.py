@@ -49,26 +49,55 @@ def _frame_title(inspection: Inspection, frame: int) -> str:
 
 
 def _draw_frame(axes: Axes, inspection: Inspection, frame: int) -> None:
+    """The screen when there is one; else the newest observation: its image, or its
+    values as bars. A packed observation (`envs/spaces.py`) is unpacked first: its first
+    image part is drawn if it has one, else all its values, labelled by part."""
     newest = inspection.observations[frame, -1]
+    layout = inspection.layout
     if inspection.screens is not None:
         axes.imshow(inspection.screens[frame], interpolation="nearest")
         axes.set_title("screen", fontsize="small")
         axes.set_axis_off()
+        return
+    if layout is not None and layout.packed:
+        parts = layout.unpack(newest)
+        images = [(part, value) for part, value in parts if part.kind == "image"]
+        if images:
+            part, value = images[0]
+            if part.channels_last and value.ndim == 3:
+                value = np.moveaxis(value, -1, 0)
+            _draw_image(axes, value.astype(np.float64), f"newest observation: {part.path or 'image'}")
+            return
+        labels = [
+            f"{part.path or 'obs'}[{i}]" for part, value in parts for i in range(value.size)
+        ]
+        values = np.concatenate([value.astype(np.float64).ravel() for _, value in parts])
+        _draw_values(axes, values, labels)
     elif newest.ndim >= 2:
-        image = newest if newest.ndim == 2 else np.moveaxis(newest, 0, -1)
-        if image.ndim == 3 and image.shape[-1] != 3:
-            image = image[..., 0]
-        axes.imshow(image, cmap="gray" if image.ndim == 2 else None, interpolation="nearest")
-        axes.set_title("network input, newest frame", fontsize="small")
-        axes.set_axis_off()
+        _draw_image(axes, newest, "network input, newest frame")
     else:
         values = np.asarray(newest, dtype=np.float64).ravel()
-        positions = np.arange(len(values))
-        axes.barh(positions, values, color="0.5")
-        axes.set_yticks(positions, [f"[{i}] {value:.3g}" for i, value in enumerate(values)])
-        axes.invert_yaxis()
-        axes.axvline(0.0, color="black", linewidth=0.6)
-        axes.set_title("newest observation", fontsize="small")
+        _draw_values(axes, values, [f"[{i}]" for i in range(len(values))])
+
+
+def _draw_image(axes: Axes, planes: np.ndarray, title: str) -> None:
+    """An image stored channels-first (or without channels): RGB when it has three
+    channels, else its first channel in grey."""
+    image = planes if planes.ndim == 2 else np.moveaxis(planes, 0, -1)
+    if image.ndim == 3 and image.shape[-1] != 3:
+        image = image[..., 0]
+    axes.imshow(image, cmap="gray" if image.ndim == 2 else None, interpolation="nearest")
+    axes.set_title(title, fontsize="small")
+    axes.set_axis_off()
+
+
+def _draw_values(axes: Axes, values: np.ndarray, labels: list[str]) -> None:
+    positions = np.arange(len(values))
+    axes.barh(positions, values, color="0.5")
+    axes.set_yticks(positions, [f"{label} {value:.3g}" for label, value in zip(labels, values)])
+    axes.invert_yaxis()
+    axes.axvline(0.0, color="black", linewidth=0.6)
+    axes.set_title("newest observation", fontsize="small")
 
 
 def _draw_q_values(axes: Axes, inspection: Inspection, frame: int, legend: bool) -> None:

@@ -31,6 +31,7 @@ from dqnlab.algorithm.agent import Agent
 from dqnlab.config import Config, derive_seeds
 from dqnlab.envs import Environment, make_env
 from dqnlab.envs.atari import AtariEnv
+from dqnlab.envs.spaces import ObservationLayout
 from dqnlab.errors import DqnlabError
 from dqnlab.run import rundir
 from dqnlab.run.logs import read_csv
@@ -74,6 +75,8 @@ class Inspection:
     game_steps: list[int] | None  # the game's agent step of each frame; None if given
     q_values: np.ndarray  # (networks, frames, actions) float32
     note: str  # where the frames come from
+    # How the observations are stored (`envs/spaces.py`); None: single frames.
+    layout: ObservationLayout | None = None
     figure_paths: list[Path] = field(default_factory=list)  # one per frame
     overview_path: Path | None = None  # None above write.OVERVIEW_MAX_FRAMES frames
     csv_path: Path | None = None
@@ -351,6 +354,7 @@ def compare_networks(
         game_steps=game_steps,
         q_values=np.stack(q_values).astype(np.float32, copy=False),
         note=note,
+        layout=best_agent.observation_layout,
     )
 
 
