@@ -129,9 +129,7 @@ class TupleEnv(CueEnv):
     """Tuple(Discrete(2), Box float32 (2,)): the Discrete says which of the two floats
     carries the cue (> 0.5)."""
 
-    observation_space = spaces.Tuple(
-        (spaces.Discrete(2), spaces.Box(0.0, 1.0, (2,), np.float32))
-    )
+    observation_space = spaces.Tuple((spaces.Discrete(2), spaces.Box(0.0, 1.0, (2,), np.float32)))
 
     def observe(self) -> tuple[int, np.ndarray]:
         where = int(self.np_random.integers(2))
@@ -147,9 +145,7 @@ class NestedDictEnv(CueEnv):
     observation_space = spaces.Dict(
         {
             "grid": spaces.Box(0, 1, (5, 5), np.bool_),
-            "meta": spaces.Dict(
-                {"where": spaces.MultiBinary(1), "code": spaces.Discrete(3)}
-            ),
+            "meta": spaces.Dict({"where": spaces.MultiBinary(1), "code": spaces.Discrete(3)}),
             "clock": spaces.Box(0.0, 1.0, (1,), np.float64),
         }
     )
@@ -169,9 +165,7 @@ class NestedDictEnv(CueEnv):
 class TextEnv(CueEnv):
     """A Dict with a Text part, which dqnlab cannot encode."""
 
-    observation_space = spaces.Dict(
-        {"position": spaces.Discrete(3), "note": spaces.Text(8)}
-    )
+    observation_space = spaces.Dict({"position": spaces.Discrete(3), "note": spaces.Text(8)})
 
     def observe(self) -> dict[str, Any]:
         return {"position": 0, "note": "a"}

@@ -13,8 +13,8 @@ from gymnasium import spaces
 
 from dqnlab.algorithm.encoders import ObservationEncoder, unpack
 from dqnlab.algorithm.networks import (
-    EncodedNetwork,
     MLP,
+    EncodedNetwork,
     NatureCNN,
     build_q_network,
     recorded_network_name,

@@ -39,7 +39,9 @@ def test_every_space_trains_resumes_evaluates_inspects_and_reports(
     for name, env_class in space_envs.SPACE_ENVS.items():
         run = tmp_path / name
         env = f"tests.envs.space_envs:{env_class.__name__}"
-        code, err = dqnlab_main(capsys, monkeypatch, "train", "--env", env, "--run-dir", str(run), *SHORT)
+        code, err = dqnlab_main(
+            capsys, monkeypatch, "train", "--env", env, "--run-dir", str(run), *SHORT
+        )
         assert code == 0, (name, err)
         assert load_run_config(run).network == NETWORKS[name]
         code, err = dqnlab_main(

@@ -97,6 +97,9 @@ class OneHotEncoder(nn.Module):
     """Each entry's stored index (value - start + 1; 0: no observation) as a one-hot of its
     categories, entries and history concatenated."""
 
+    offsets: torch.Tensor
+    keep: torch.Tensor
+
     def __init__(self, part: Part, history: int) -> None:
         super().__init__()
         categories = torch.tensor(part.categories, dtype=torch.int64)
@@ -115,6 +118,8 @@ class OneHotEncoder(nn.Module):
 
 
 class VectorEncoder(nn.Module):
+    """A part's history flattened, as float."""
+
     def __init__(self, part: Part, history: int) -> None:
         super().__init__()
         size = 1
@@ -136,7 +141,7 @@ class ObservationEncoder(nn.Module):
     ) -> None:
         super().__init__()
         self.layout = layout
-        encoders: list[nn.Module] = []
+        encoders: list[ImageEncoder | OneHotEncoder | VectorEncoder] = []
         for part in layout.parts:
             if part.kind == "image":
                 encoders.append(ImageEncoder(part, history, small_images))
@@ -145,7 +150,7 @@ class ObservationEncoder(nn.Module):
             else:
                 encoders.append(VectorEncoder(part, history))
         self.encoders = nn.ModuleList(encoders)
-        self.output_size = sum(int(encoder.output_size) for encoder in encoders)
+        self.output_size = sum(encoder.output_size for encoder in encoders)
 
     def forward(self, observations: torch.Tensor) -> torch.Tensor:
         values = unpack(observations, self.layout)

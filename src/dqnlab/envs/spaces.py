@@ -150,7 +150,6 @@ class ObservationLayout:
             out[part.offset : part.offset + part.nbytes] = stored.view(np.uint8)
         return out
 
-
     def unpack(self, frame: np.ndarray) -> list[tuple[Part, np.ndarray]]:
         """Each part of one stored frame as the environment gave it (one-hot parts as their
         values; a zero frame's, from before an episode's start, as start - 1)."""
@@ -241,7 +240,7 @@ def _parts(space: gym.Space, path: str, images: str) -> list[Part]:
             )
         ]
     if isinstance(space, gym.spaces.MultiBinary):
-        shape = (int(space.n),) if np.ndim(space.n) == 0 else tuple(int(n) for n in space.n)
+        shape = tuple(int(n) for n in np.atleast_1d(space.n))
         return [Part(path, "vector", shape, np.dtype(np.bool_).str)]
     where = f" (at {path!r} of the observation)" if path else ""
     raise EnvError(

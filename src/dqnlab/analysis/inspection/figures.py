@@ -66,11 +66,11 @@ def _draw_frame(axes: Axes, inspection: Inspection, frame: int) -> None:
             part, value = images[0]
             if part.channels_last and value.ndim == 3:
                 value = np.moveaxis(value, -1, 0)
-            _draw_image(axes, value.astype(np.float64), f"newest observation: {part.path or 'image'}")
+            _draw_image(
+                axes, value.astype(np.float64), f"newest observation: {part.path or 'image'}"
+            )
             return
-        labels = [
-            f"{part.path or 'obs'}[{i}]" for part, value in parts for i in range(value.size)
-        ]
+        labels = [f"{part.path or 'obs'}[{i}]" for part, value in parts for i in range(value.size)]
         values = np.concatenate([value.astype(np.float64).ravel() for _, value in parts])
         _draw_values(axes, values, labels)
     elif newest.ndim >= 2:
@@ -94,7 +94,8 @@ def _draw_image(axes: Axes, planes: np.ndarray, title: str) -> None:
 def _draw_values(axes: Axes, values: np.ndarray, labels: list[str]) -> None:
     positions = np.arange(len(values))
     axes.barh(positions, values, color="0.5")
-    axes.set_yticks(positions, [f"{label} {value:.3g}" for label, value in zip(labels, values)])
+    ticks = [f"{label} {value:.3g}" for label, value in zip(labels, values, strict=True)]
+    axes.set_yticks(positions, ticks)
     axes.invert_yaxis()
     axes.axvline(0.0, color="black", linewidth=0.6)
     axes.set_title("newest observation", fontsize="small")
