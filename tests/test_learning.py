@@ -65,3 +65,33 @@ def test_each_variant_solves_cartpole(tmp_path: Path, variant: str) -> None:
     print(f"{variant}: first periodic evaluation >= 475 at step {first_solved}; "
           f"final 20 games {result.mean:.1f} ± {result.std:.1f}")  # fmt: skip
     assert result.mean >= 475
+
+
+# Observation spaces other than a vector (docs/observation-spaces.md), each to its optimal
+# score: CliffWalking-v1 (a Discrete observation, one-hot: 13 steps along the cliff, -13;
+# no TimeLimit of its own, so capped here) and the nested-Dict cue game of the tests (8).
+SPACE_TASKS = {
+    "cliffwalking-discrete": (
+        "CliffWalking-v1", 30_000, -13.0,
+        {"max_episode_frames": 200, "eval_max_episode_frames": 100,
+         "final_eval_max_episode_frames": 100},
+    ),
+    "nested-dict": ("tests.envs.space_envs:NestedDictEnv", 20_000, 8.0, {}),
+}  # fmt: skip
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("task", list(SPACE_TASKS))
+def test_structured_observations_reach_their_optimal_score(tmp_path: Path, task: str) -> None:
+    env, steps, optimal, settings = SPACE_TASKS[task]
+    config = resolve_config(
+        "classic", env=env, seed=0, total_steps=steps, eval_period_steps=5000, **settings
+    )
+    run = tmp_path / task
+    prepare_run_dir(run, force=False)
+    trained = train(config, run, torch.device("cpu"), progress=False, tensorboard=False)
+    result, _ = final_evaluation(run, "best", 20, seed=1000, device=torch.device("cpu"))
+    first = next((step for step, mean in trained.evaluations if mean >= optimal), None)
+    print(f"{task}: first periodic evaluation at the optimum ({optimal}) at step {first}; "
+          f"final 20 games {result.mean:.2f} ± {result.std:.2f}")  # fmt: skip
+    assert result.mean == optimal
