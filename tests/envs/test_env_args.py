@@ -121,6 +121,20 @@ def test_an_environment_that_rejects_its_kwargs_says_so_in_one_line() -> None:
         check_env_name(COUNT)
 
 
+@pytest.mark.filterwarnings("ignore::UserWarning")  # Gymnasium's, about a render_mode
+def test_env_kwargs_and_the_render_mode_of_videos_go_together() -> None:
+    filmed = _make_gymnasium("CartPole-v1", "rgb_array", {"sutton_barto_reward": True})
+    assert filmed.render_mode == "rgb_array" and filmed.unwrapped._sutton_barto_reward
+    if "DqnlabArgsTest/Count-v0" not in gym.registry:
+        gym.register("DqnlabArgsTest/Count-v0", entry_point=CountEnv)
+    # A constructor without render_mode: gym.make's TypeError, which videos turn into their
+    # own message ("cannot be filmed"), not the kwargs' fault.
+    with pytest.raises(TypeError, match="render_mode"):
+        _make_gymnasium("DqnlabArgsTest/Count-v0", "rgb_array", {"length": 2})
+    # A factory is given env_kwargs only, as it was given no argument before.
+    assert _make_gymnasium(COUNT, "rgb_array", {"length": 2}).unwrapped.length == 2
+
+
 def test_wrappers_are_applied_in_order() -> None:
     wrappers = (f"{MODULE}:first", f"{MODULE}:second", f"{MODULE}:DoubleReward")
     env = _make_gymnasium(COUNT, None, {"length": 2}, wrappers)

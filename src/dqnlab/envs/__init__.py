@@ -139,15 +139,15 @@ def _make_gymnasium(
     kwargs: Mapping[str, Any] | None = None,
     wrappers: Sequence[str] = (),
 ) -> gym.Env:
-    """The Gymnasium environment `name`, made with `kwargs` (and `render_mode`), then
-    wrapped by each of `wrappers` in order."""
+    """The Gymnasium environment `name`, made with `kwargs` (and `render_mode`, which a
+    `module:EnvClass` factory is not given), then wrapped by each of `wrappers` in order."""
     if not name:
         raise EnvError("no environment given; pass --env (e.g. pong, CartPole-v1)")
-    arguments = {**(kwargs or {}), **_render_kwargs(render_mode)}
+    kwargs = dict(kwargs or {})
     if ":" in name and "/" not in name.split(":")[0]:
-        env = _make_from_entry_point(name, arguments)
+        env = _make_from_entry_point(name, kwargs, render_mode)
     else:
-        env = _make_registered(name, arguments)
+        env = _make_registered(name, kwargs, render_mode)
     for wrapper in wrappers:
         env = _wrap(env, wrapper)
     return env
@@ -159,36 +159,40 @@ def _render_kwargs(render_mode: str | None) -> dict[str, Any]:
     return {} if render_mode is None else {"render_mode": render_mode}
 
 
-def _make_registered(name: str, arguments: dict[str, Any], shown: str | None = None) -> gym.Env:
+def _make_registered(
+    name: str, kwargs: dict[str, Any], render_mode: str | None, shown: str | None = None
+) -> gym.Env:
     """gym.make, and if `name` is not registered, again after loading the installed
     packages' `gymnasium.envs` entry points that may provide it (`registry.py`)."""
     shown = shown or name
     try:
-        return _gym_make(name, arguments, shown)
+        return _gym_make(name, kwargs, render_mode, shown)
     except gym.error.Error as error:
         if _is_registered(name):
             raise EnvError(f"{shown}: {_one_line(error)}") from None
         sources, failures = load_entry_points(name)
         try:
-            return _gym_make(name, arguments, shown)
+            return _gym_make(name, kwargs, render_mode, shown)
         except gym.error.Error as again:
             if _is_registered(name):
                 raise EnvError(f"{shown}: {_one_line(again)}") from None
             raise EnvError(unknown_env_message(shown, error, sources, failures)) from None
 
 
-def _gym_make(name: str, arguments: dict[str, Any], shown: str) -> gym.Env:
+def _gym_make(name: str, kwargs: dict[str, Any], render_mode: str | None, shown: str) -> gym.Env:
     """gym.make; an error from the environment's constructor, once the id was found, is
-    the environment refusing its keyword arguments when it was given some."""
+    the environment refusing its keyword arguments when it was given some (a constructor
+    without render_mode raises its TypeError as before: videos say so)."""
     try:
-        return gym.make(name, **arguments)
+        return gym.make(name, **kwargs, **_render_kwargs(render_mode))
     except gym.error.DependencyNotInstalled:
         raise
     except (TypeError, ValueError, KeyError, gym.error.Error) as error:
-        if not arguments or not _is_registered(name):
-            raise
         # gym.make adds the id and every argument to a TypeError; the env's own is its cause.
         original = error.__cause__ if isinstance(error.__cause__, TypeError) else error
+        about_render_mode = render_mode is not None and "render_mode" in str(original)
+        if not kwargs or about_render_mode or not _is_registered(name):
+            raise
         raise EnvError(f"{shown}: env_kwargs rejected: {_one_line(original)}") from None
 
 
@@ -209,9 +213,10 @@ def _one_line(error: BaseException) -> str:
     return text if isinstance(error, gym.error.Error) else f"{type(error).__name__}: {text}"
 
 
-def _make_from_entry_point(name: str, arguments: dict[str, Any]) -> gym.Env:
-    """`module:EnvClass` (any callable returning an env, called with `arguments`), or
-    Gymnasium's `module:Env-v0` (the module registers the id when imported)."""
+def _make_from_entry_point(name: str, kwargs: dict[str, Any], render_mode: str | None) -> gym.Env:
+    """`module:EnvClass` (any callable returning an env, called with `kwargs`), or
+    Gymnasium's `module:Env-v0` (the module registers the id when imported; made with
+    `render_mode` too)."""
     module_name, _, attribute = name.partition(":")
     try:
         module = importlib.import_module(module_name)
@@ -219,11 +224,11 @@ def _make_from_entry_point(name: str, arguments: dict[str, Any]) -> gym.Env:
         raise EnvError(f"cannot load environment {name!r}: {error}") from None
     factory = getattr(module, attribute, None)
     if factory is None:  # importing the module may have registered the id
-        return _make_registered(attribute, arguments, shown=name)
+        return _make_registered(attribute, kwargs, render_mode, shown=name)
     try:
-        env = factory(**arguments)
+        env = factory(**kwargs)
     except TypeError as error:
-        if arguments:
+        if kwargs:
             raise EnvError(f"{name}: env_kwargs rejected: {_one_line(error)}") from None
         raise EnvError(f"environment factory {name!r} failed: {error!r}") from None
     except Exception as error:  # noqa: BLE001 - the user's code: report, don't crash

@@ -1,7 +1,7 @@
 """Gymnasium ids that installed packages provide through `gymnasium.envs` entry points,
 and the one-line message for an id that is still unknown.
 
-Gymnasium 0.26 to 0.29 loaded every `gymnasium.envs` entry point when it was imported;
+Gymnasium before 1.0 loaded every `gymnasium.envs` entry point when it was imported;
 Gymnasium 1.x no longer does, so `SomePackage/Game-v1` is unknown until its package is
 imported. dqnlab loads those entry points when an id is missing, the way Gymnasium did:
 an entry point's name is the namespace its ids are registered under (`__root__`: none),
