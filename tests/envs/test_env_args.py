@@ -303,6 +303,9 @@ def test_train_with_env_kwargs_and_wrappers_then_evaluate_and_resume(tmp_path: P
     evaluated = dqnlab("evaluate", str(run), "--episodes", "2", "--json", str(out), cwd=REPOSITORY)
     assert evaluated.returncode == 0, evaluated.stderr
     assert json.loads(out.read_text())["scores"] == [14.0, 14.0]  # 7 steps, reward doubled
+    inspected = dqnlab("inspect", str(run), "--frames", "2", "--checkpoints", "best",
+                       cwd=REPOSITORY)  # fmt: skip
+    assert inspected.returncode == 0, inspected.stderr
     resumed = dqnlab("resume", str(run), "--steps", "400", "--no-progress", cwd=REPOSITORY)
     assert resumed.returncode == 0, resumed.stderr
     assert "400 steps" in resumed.stdout
