@@ -240,6 +240,8 @@ def test_environment_arguments_are_part_of_the_fingerprint_unless_at_their_defau
     assert config_fingerprint(other) != config_fingerprint(slippery)
     # Each Config has its own table: the default is not shared.
     assert Config().env_kwargs is not Config().env_kwargs
+    with pytest.raises(ConfigError, match=r"env_kwargs = \[1\] must be a table"):
+        Config(env_kwargs=[1])  # type: ignore[arg-type]
 
 
 @pytest.mark.parametrize(

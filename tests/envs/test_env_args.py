@@ -12,6 +12,7 @@ import gymnasium as gym
 import numpy as np
 import pytest
 
+from dqnlab import envs
 from dqnlab.config import Config, resolve_config
 from dqnlab.envs import _make_gymnasium, check_env, check_env_name, make_env, registry
 from dqnlab.errors import EnvError
@@ -186,6 +187,21 @@ def test_atari_games_take_dqnlab_settings_not_env_kwargs_or_wrappers() -> None:
     with pytest.raises(EnvError, match="^pong: env_wrappers apply to"):
         check_env(resolve_config("nature", env="pong", env_wrappers=[f"{MODULE}:first"]))
     check_env_name("pong")  # without them, as before
+
+
+def test_observation_images_reaches_the_gymnasium_env(monkeypatch: pytest.MonkeyPatch) -> None:
+    seen = []
+
+    class Recorder(envs.GymnasiumEnv):
+        def __init__(self, env: gym.Env, **kwargs) -> None:  # noqa: ANN003
+            seen.append(kwargs.pop("observation_images", "auto"))
+            super().__init__(env, **kwargs)
+
+    monkeypatch.setattr(envs, "GymnasiumEnv", Recorder)
+    make_env(Config(env="CartPole-v1", observation_images="none"), training=True, seed=0)
+    check_env(Config(env="CartPole-v1", observation_images="all"))
+    make_env(Config(env="CartPole-v1"), training=True, seed=0)
+    assert seen == ["none", "all", "auto"]
 
 
 # Ids from installed packages ------------------------------------------------------------

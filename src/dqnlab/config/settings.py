@@ -312,6 +312,8 @@ def _is_import_path(value: str) -> bool:
 
 
 def _validate_env_arguments(config: Config) -> None:
+    if not isinstance(config.env_kwargs, dict):
+        raise ConfigError(f"env_kwargs = {config.env_kwargs!r} must be a table (a dict)")
     for wrapper in config.env_wrappers:
         if not _is_import_path(wrapper):
             raise ConfigError(f"env_wrappers: {wrapper!r} is not module:callable")

@@ -88,35 +88,46 @@ def make_env(
             max_episode_frames=cap,
         )
     env = _make_gymnasium(name, render_mode, config.env_kwargs, config.env_wrappers)
-    images = config.observation_images
     try:
         return GymnasiumEnv(
-            env,
-            seed=seed,
-            max_episode_steps=cap,
-            **({} if images == "auto" else {"observation_images": images}),
+            env, seed=seed, max_episode_steps=cap, **_layout_kwargs(config.observation_images)
         )
     except EnvError:
         env.close()
         raise
 
 
+def _layout_kwargs(observation_images: str) -> dict[str, Any]:
+    # Until GymnasiumEnv takes observation_images (envs/generic.py), "auto" is not passed.
+    return {} if observation_images == "auto" else {"observation_images": observation_images}
+
+
 def check_env(config: Config) -> None:
     """`check_env_name` for the environment `config` builds."""
-    check_env_name(config.env, env_kwargs=config.env_kwargs, env_wrappers=config.env_wrappers)
+    check_env_name(
+        config.env,
+        env_kwargs=config.env_kwargs,
+        env_wrappers=config.env_wrappers,
+        observation_images=config.observation_images,
+    )
 
 
 def check_env_name(
-    name: str, *, env_kwargs: Mapping[str, Any] | None = None, env_wrappers: Sequence[str] = ()
+    name: str,
+    *,
+    env_kwargs: Mapping[str, Any] | None = None,
+    env_wrappers: Sequence[str] = (),
+    observation_images: str = "auto",
 ) -> None:
     """Raise a one-line error if `name` is neither an Atari game nor a usable Gymnasium env
-    (made with `env_kwargs`, wrapped in `env_wrappers`)."""
+    (made with `env_kwargs`, wrapped in `env_wrappers`, its observations read as
+    `observation_images` says)."""
     if is_atari(name):
         _refuse_env_arguments(name, env_kwargs or {}, env_wrappers)
         return
     env = _make_gymnasium(name, None, env_kwargs, env_wrappers)
     try:
-        GymnasiumEnv(env, seed=0)
+        GymnasiumEnv(env, seed=0, **_layout_kwargs(observation_images))
     finally:
         env.close()
 
