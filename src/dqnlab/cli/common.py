@@ -35,7 +35,10 @@ Wrappers = Annotated[
         "returning a gymnasium.Env; repeatable, applied in order, after env_wrappers' own",
     ),
 ]
-ENV_HELP = "Atari game (pong), Gymnasium id (CartPole-v1, or one an installed package provides), "
+ENV_HELP = (
+    "Atari game (pong), Gymnasium id (CartPole-v1, or one an installed package provides), "
+    "module:Env-id or module:EnvClass"
+)
 
 
 def resolve_device(name: str):  # noqa: ANN201 - torch is imported only when needed

@@ -115,7 +115,7 @@ def sweep(
 
 
 def ablate(
-    env: Annotated[str, typer.Option(help=ENV_HELP + "module:Env-id or module:EnvClass")],
+    env: Annotated[str, typer.Option(help=ENV_HELP)],
     vary: Annotated[list[str], typer.Option(help=VARY_HELP)],
     seeds: Annotated[int, typer.Option(help="Seeds per setting: SEED, SEED+1, ...")] = 1,
     seed: FirstSeed = 0,

@@ -21,7 +21,7 @@ from dqnlab.config import preset_names
 
 
 def train(
-    env: Annotated[str, typer.Option(help=ENV_HELP + "module:Env-id or module:EnvClass")],
+    env: Annotated[str, typer.Option(help=ENV_HELP)],
     preset: Annotated[
         str | None,
         typer.Option(

@@ -30,7 +30,11 @@ class Config:
     """One run's settings. Build with `resolve_config`, which validates every field."""
 
     # Environment.
-    env: str = _setting("", "Atari game as ale-py names it, a Gymnasium id, or module:EnvClass")
+    env: str = _setting(
+        "",
+        "Atari game as ale-py names it, a Gymnasium id (also one an installed package "
+        "provides), module:Env-id, or module:EnvClass",
+    )
     env_kwargs: dict[str, Any] = _setting(
         {},
         "Keyword arguments of a Gymnasium environment's constructor (gymnasium.make(env, "
