@@ -16,10 +16,13 @@ from dqnlab.config import (
     differing_settings,
     load_preset,
     parse_overrides,
+    parse_pairs,
+    parse_value,
     preset_names,
     resolve_config,
     setting_text,
     toml_value,
+    with_env_arguments,
 )
 from dqnlab.errors import ConfigError
 
@@ -47,7 +50,9 @@ def test_nature_preset_has_deepminds_values() -> None:
 
 def test_every_shipped_preset_sets_every_field_and_is_valid() -> None:
     assert set(preset_names()) >= {"nature", "seed-paper", "machado", "classic"}
-    fields = {f.name for f in dataclasses.fields(Config)} - {"env", "seed"}
+    # The environment's own settings are the user's environment's, not a preset's.
+    environment = {"env", "seed", "env_kwargs", "env_wrappers", "observation_images"}
+    fields = {f.name for f in dataclasses.fields(Config)} - environment
     for name in preset_names():
         assert fields - {"mlp_hidden_sizes", "adam_epsilon"} <= set(load_preset(name)), name
         resolve_config(name, env="pong")
@@ -195,3 +200,93 @@ def test_the_familys_settings_at_their_defaults_leave_the_fingerprint_as_before(
     assert config_fingerprint(resolve_config("nature", env="pong")).startswith("0ec1391b4c39d2a6")
     changed = resolve_config("nature", parse_overrides(["n_step=3"]), env="pong")
     assert config_fingerprint(changed) != config_fingerprint(resolve_config("nature", env="pong"))
+
+
+def test_environment_arguments_round_trip_through_config_toml(tmp_path) -> None:
+    overrides = parse_overrides([
+        'env_kwargs={map_name = "8x8", is_slippery = false, "odd key" = [1, 2.5], sub = {a = 1}}',
+        "env_wrappers=[\"my.wrappers:Clip\", \"my.wrappers:Stack\"]", "observation_images=all",
+    ])  # fmt: skip
+    config = resolve_config("classic", overrides, env="FrozenLake-v1")
+    assert config.env_kwargs == {
+        "map_name": "8x8", "is_slippery": False, "odd key": [1, 2.5], "sub": {"a": 1}
+    }  # fmt: skip
+    assert config.env_wrappers == ("my.wrappers:Clip", "my.wrappers:Stack")
+    assert config.observation_images == "all"
+    text = config_to_toml(config)
+    assert 'env_kwargs = {map_name = "8x8", is_slippery = false, "odd key" = [1, 2.5], ' in text
+    path = tmp_path / "config.toml"
+    path.write_text(text)
+    assert config_from_dict(tomllib.loads(path.read_text())) == config
+    assert config_from_dict(config.to_dict()) == config
+    assert resolve_config(str(path)) == config
+    # A bare string is one wrapper (commas separate several), as mlp_hidden_sizes' integers.
+    one = resolve_config("classic", parse_overrides(["env_wrappers=a.b:C,d:E"]), env="x")
+    assert one.env_wrappers == ("a.b:C", "d:E")
+
+
+def test_environment_arguments_are_part_of_the_fingerprint_unless_at_their_defaults() -> None:
+    plain = resolve_config("classic", env="FrozenLake-v1")
+    assert plain.env_kwargs == {} and plain.env_wrappers == ()
+    assert plain.observation_images == "auto"
+    assert {"env_kwargs", "env_wrappers", "observation_images"}.isdisjoint(RESUMABLE_CHANGES)
+    for name, value in (("env_kwargs", {"is_slippery": False}), ("env_wrappers", ("m:W",)),
+                        ("observation_images", "none")):  # fmt: skip
+        changed = dataclasses.replace(plain, **{name: value})
+        assert config_fingerprint(changed) != config_fingerprint(plain), name
+        assert differing_settings(plain, changed) == [name]
+    other = dataclasses.replace(plain, env_kwargs={"is_slippery": True})
+    slippery = dataclasses.replace(plain, env_kwargs={"is_slippery": False})
+    assert config_fingerprint(other) != config_fingerprint(slippery)
+    # Each Config has its own table: the default is not shared.
+    assert Config().env_kwargs is not Config().env_kwargs
+    with pytest.raises(ConfigError, match=r"env_kwargs = \[1\] must be a table"):
+        Config(env_kwargs=[1])  # type: ignore[arg-type]
+
+
+@pytest.mark.parametrize(
+    ("pair", "message"),
+    [
+        ("env_kwargs=3", "env_kwargs = 3 is not a valid table"),
+        ("env_kwargs=map_name", "env_kwargs = 'map_name' is not a valid table"),
+        ("env_wrappers=[1]", "env_wrappers = [1] is not a valid list of strings"),
+        ("env_wrappers=no_colon", "env_wrappers: 'no_colon' is not module:callable"),
+        ('env_kwargs={render_mode = "human"}', "env_kwargs: render_mode is dqnlab's to set"),
+        ("observation_images=some", "observation_images = 'some' is not one of: auto, all, none"),
+    ],
+)
+def test_bad_environment_arguments_are_one_line(pair, message) -> None:
+    with pytest.raises(ConfigError) as error:
+        resolve_config("classic", parse_overrides([pair]), env="CartPole-v1")
+    assert message in str(error.value) and "\n" not in str(error.value)
+
+
+def test_env_kwarg_and_wrapper_options_add_to_the_settings() -> None:
+    config = resolve_config(
+        "classic", parse_overrides(["env_kwargs={a = 1, b = 2}", "env_wrappers=m:First"]), env="x"
+    )
+    added = with_env_arguments(config, parse_pairs(["b=3", "c=8x8"], "--env-kwarg"), ["m:Second"])
+    assert added.env_kwargs == {"a": 1, "b": 3, "c": "8x8"}
+    assert added.env_wrappers == ("m:First", "m:Second")
+    assert config.env_kwargs == {"a": 1, "b": 2}  # unchanged
+    assert with_env_arguments(config, {}, []) is config
+
+
+def test_values_read_as_toml_literals_else_as_plain_strings() -> None:
+    assert parse_value("false") is False and parse_value(" 3 ") == 3
+    assert parse_value("[4, 4]") == [4, 4] and parse_value("{x = 1}") == {"x": 1}
+    assert parse_value('"8x8"') == "8x8" and parse_value("8x8") == "8x8"
+    assert parse_value("LunarLander-v3") == "LunarLander-v3"
+    with pytest.raises(ConfigError, match="--env-kwarg expects KEY=VALUE, got 'is_slippery'"):
+        parse_pairs(["is_slippery"], "--env-kwarg")
+
+
+def test_toml_tables_and_dates_read_back() -> None:
+    import datetime
+
+    for value in ({}, {"a": 1, "b c": "d", "e": {"f": [1, 2]}}, datetime.date(2026, 1, 2),
+                  {"when": datetime.datetime(2026, 1, 2, 3, 4, 5)}):  # fmt: skip
+        assert tomllib.loads(f"value = {toml_value(value)}")["value"] == value
+    assert setting_text({"is_slippery": False}) == "{is_slippery = false}"
+    with_date = resolve_config("classic", {"env_kwargs": {"day": datetime.date(2026, 1, 2)}})
+    assert len(config_fingerprint(with_date)) == 64

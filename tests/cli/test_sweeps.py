@@ -20,6 +20,19 @@ from tests.helpers import dqnlab_main
         (["--env", "pong", "--vary", "seed=1,2"], "use --seeds"),
         (["--env", "pong", "--address", "127.0.0.1:9"], "nothing answers at 127.0.0.1:9"),
         (["--env", "pong", "--address", "nowhere"], "is not one of: local, auto, HOST:PORT"),
+        (["--env", "pong", "--env-kwarg", "mode=1"], "pong: env_kwargs apply to Gymnasium"),
+        (
+            ["--env", "CartPole-v1", "--wrapper", "no_such_dqnlab_module:W"],
+            "wrapper 'no_such_dqnlab_module:W': cannot import no_such_dqnlab_module",
+        ),
+        (
+            ["--env", "FrozenLake-v1", "--env-kwarg", "map_name=9x9"],
+            "FrozenLake-v1: env_kwargs rejected: KeyError: '9x9'",
+        ),
+        (
+            ["--env", "CartPole-v1", "--env-kwarg", "sutton_barto_reward"],
+            "--env-kwarg expects KEY=VALUE, got 'sutton_barto_reward'",
+        ),
     ],
 )
 def test_bad_input_gives_one_line_and_exit_2(
@@ -64,3 +77,18 @@ def test_a_games_file_and_a_sweep_dir_of_another_sweep(tmp_path: Path, capsys, m
     )
     assert code == 2 and "holds a different sweep (preset nature, varied: discount)" in stderr
     assert (sweep_dir / "sweep.json").read_text() == before
+
+
+def test_ablate_takes_env_kwargs_and_wrappers_too(tmp_path: Path, capsys, monkeypatch) -> None:  # noqa: ANN001
+    sweep_dir = tmp_path / "ablation"
+    code, stderr = dqnlab_main(
+        capsys, monkeypatch, "ablate", "--env", "breakout", "--vary", "discount=0.9,0.99",
+        "--wrapper", "tests.envs.test_env_args:first", "--sweep-dir", str(sweep_dir),
+    )  # fmt: skip
+    assert code == 2 and "breakout: env_wrappers apply to Gymnasium environments" in stderr
+    code, stderr = dqnlab_main(
+        capsys, monkeypatch, "ablate", "--env", "FrozenLake-v1", "--vary", "discount=0.9,0.99",
+        "--env-kwarg", "slippery=false", "--sweep-dir", str(sweep_dir),
+    )  # fmt: skip
+    assert code == 2 and "FrozenLake-v1: env_kwargs rejected: TypeError: " in stderr
+    assert len(stderr.strip().splitlines()) == 1 and not sweep_dir.exists()

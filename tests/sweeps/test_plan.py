@@ -67,3 +67,28 @@ def test_an_ablation_plan_and_its_jobs(tmp_path: Path) -> None:
     assert 1 <= ablation_jobs(sweep, None) <= 2
     with pytest.raises(DqnlabError, match="--jobs 0 must be positive"):
         ablation_jobs(sweep, 0)
+
+
+def test_env_kwargs_and_wrappers_reach_every_run_and_may_be_varied(tmp_path: Path) -> None:
+    count = "tests.envs.test_env_args:CountEnv"
+    sweep = plan_ablation_options(
+        env=count, vary=["env_kwargs={length = 3},{length = 5, width = 4}"], preset=None,
+        settings=["env_kwargs={width = 9}"], seeds=1, first_seed=0, steps=500,
+        sweep_dir=tmp_path / "ablation", env_kwargs=["width=2"],
+        wrappers=["tests.envs.test_env_args:first"],
+    )  # fmt: skip
+    assert [run.name for run in sweep.runs] == [
+        "env_kwargs=length=3-s0", "env_kwargs=length=5+width=4-s0"
+    ]  # fmt: skip
+    # --env-kwarg adds to (and replaces a key of) the table that --set or --vary gives.
+    assert [run.config.env_kwargs for run in sweep.runs] == [
+        {"length": 3, "width": 2}, {"length": 5, "width": 2}
+    ]  # fmt: skip
+    assert all(run.config.env_wrappers == ("tests.envs.test_env_args:first",) for run in sweep.runs)
+    with pytest.raises(DqnlabError, match="env_kwargs rejected: TypeError: .*'height'"):
+        plan_ablation_options(
+            env=count, vary=["env_kwargs={length = 3},{length = 5, height = 4}"], preset=None,
+            settings=[], seeds=1, first_seed=0, steps=500, sweep_dir=tmp_path / "bad",
+        )  # fmt: skip
+    with pytest.raises(DqnlabError, match="^pong: env_kwargs apply to Gymnasium environments"):
+        plan_sweep_options(**sweep_options(env="pong", vary=[], settings=[], env_kwargs=["a=1"]))

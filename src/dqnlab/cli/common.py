@@ -17,6 +17,28 @@ from dqnlab.errors import DqnlabError
 Device = Annotated[str, typer.Option(help="auto, cpu or cuda")]
 RunDir = Annotated[Path, typer.Argument(help="A run directory written by `dqnlab train`")]
 Progress = Annotated[bool, typer.Option(help="Show the live progress bar")]
+# How a Gymnasium environment is made: the settings env_kwargs and env_wrappers, added to.
+EnvKwargs = Annotated[
+    list[str] | None,
+    typer.Option(
+        "--env-kwarg",
+        help="An argument of the environment's constructor: KEY=VALUE, VALUE a TOML literal "
+        '(false, 3, [4, 4], "text") or else a plain string (map_name=8x8); repeatable, added '
+        "to env_kwargs (a KEY given here replaces the same KEY from the preset or --set)",
+    ),
+]
+Wrappers = Annotated[
+    list[str] | None,
+    typer.Option(
+        "--wrapper",
+        help="A wrapper around the environment: module:callable, called as callable(env) and "
+        "returning a gymnasium.Env; repeatable, applied in order, after env_wrappers' own",
+    ),
+]
+ENV_HELP = (
+    "Atari game (pong), Gymnasium id (CartPole-v1, or one an installed package provides), "
+    "module:Env-id or module:EnvClass"
+)
 
 
 def resolve_device(name: str):  # noqa: ANN201 - torch is imported only when needed

@@ -10,7 +10,7 @@ from typing import Annotated, Any
 
 import typer
 
-from dqnlab.cli.common import Device, resolve_device, write_json
+from dqnlab.cli.common import ENV_HELP, Device, EnvKwargs, Wrappers, resolve_device, write_json
 from dqnlab.cli.results import report_runs
 from dqnlab.errors import DqnlabError
 
@@ -44,6 +44,8 @@ def sweep(
     seed: FirstSeed = 0,
     vary: Annotated[list[str] | None, typer.Option(help=VARY_HELP)] = None,
     set_: SharedSettings = None,
+    env_kwarg: EnvKwargs = None,
+    wrapper: Wrappers = None,
     steps: RunSteps = None,
     sweep_dir: Annotated[
         Path | None, typer.Option(help="Where the runs go (default sweeps/GAMES-KEYS)")
@@ -89,6 +91,7 @@ def sweep(
         env=env, games=games, preset=preset, seeds=seeds, first_seed=seed, vary=vary or [],
         settings=set_ or [], steps=steps, sweep_dir=sweep_dir, cpus_per_run=cpus_per_run,
         gpus_per_run=gpus_per_run, memory_per_run_gb=memory_per_run, max_retries=max_retries,
+        env_kwargs=env_kwarg or [], wrappers=wrapper or [],
     )  # fmt: skip
     resources = plan.resources
     with connected(address):
@@ -112,15 +115,15 @@ def sweep(
 
 
 def ablate(
-    env: Annotated[
-        str, typer.Option(help="Atari game (breakout), Gymnasium id or module:EnvClass")
-    ],
+    env: Annotated[str, typer.Option(help=ENV_HELP)],
     vary: Annotated[list[str], typer.Option(help=VARY_HELP)],
     seeds: Annotated[int, typer.Option(help="Seeds per setting: SEED, SEED+1, ...")] = 1,
     seed: FirstSeed = 0,
     steps: RunSteps = None,
     preset: BasePreset = None,
     set_: SharedSettings = None,
+    env_kwarg: EnvKwargs = None,
+    wrapper: Wrappers = None,
     sweep_dir: Annotated[
         Path | None, typer.Option(help="Where the runs go (default sweeps/ENV-KEYS)")
     ] = None,
@@ -150,7 +153,7 @@ def ablate(
 
     sweep = plan_ablation_options(
         env=env, vary=vary, preset=preset, settings=set_ or [], seeds=seeds, first_seed=seed,
-        steps=steps, sweep_dir=sweep_dir,
+        steps=steps, sweep_dir=sweep_dir, env_kwargs=env_kwarg or [], wrappers=wrapper or [],
     )  # fmt: skip
     torch_device = resolve_device(device)  # a bad --device fails here, not in every run
     jobs = ablation_jobs(sweep, jobs)

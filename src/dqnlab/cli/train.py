@@ -8,14 +8,20 @@ from typing import Annotated
 
 import typer
 
-from dqnlab.cli.common import Device, Progress, RunDir, resolve_device
+from dqnlab.cli.common import (
+    ENV_HELP,
+    Device,
+    EnvKwargs,
+    Progress,
+    RunDir,
+    Wrappers,
+    resolve_device,
+)
 from dqnlab.config import preset_names
 
 
 def train(
-    env: Annotated[
-        str, typer.Option(help="Atari game (pong), Gymnasium id (CartPole-v1) or module:EnvClass")
-    ],
+    env: Annotated[str, typer.Option(help=ENV_HELP)],
     preset: Annotated[
         str | None,
         typer.Option(
@@ -27,6 +33,8 @@ def train(
         list[str] | None,
         typer.Option("--set", help="Override a setting: KEY=VALUE (repeatable)"),
     ] = None,
+    env_kwarg: EnvKwargs = None,
+    wrapper: Wrappers = None,
     steps: Annotated[
         int | None, typer.Option(help="Training budget in agent steps (total_steps)")
     ] = None,
@@ -43,15 +51,16 @@ def train(
     progress: Progress = True,
 ) -> None:
     """Train a DQN; writes config, CSV logs, TensorBoard events and checkpoints to the run dir."""
-    from dqnlab.config import parse_overrides, resolve_config
-    from dqnlab.envs import check_env_name, is_atari
+    from dqnlab.config import parse_overrides, parse_pairs, resolve_config, with_env_arguments
+    from dqnlab.envs import check_env, is_atari
     from dqnlab.run.rundir import default_run_dir, prepare_run_dir
 
-    check_env_name(env)
     preset = preset or ("nature" if is_atari(env) else "classic")
     config = resolve_config(
         preset, parse_overrides(set_ or []), env=env, total_steps=steps, seed=seed
     )
+    config = with_env_arguments(config, parse_pairs(env_kwarg or [], "--env-kwarg"), wrapper or [])
+    check_env(config)
     torch_device = resolve_device(device)
     run_dir = run_dir or default_run_dir(env, preset, config.seed)
     resume = prepare_run_dir(run_dir, force, config)

@@ -48,14 +48,18 @@ def plan_sweep(
     first_seed: int,
     steps: int | None,
     sweep_dir: Path,
+    env_kwargs: dict[str, Any] | None = None,
+    env_wrappers: Sequence[str] = (),
 ) -> Sweep:
     """Every run of the grid (the product of the variations, times the seeds) on `env`,
-    named SETTINGS-sSEED, each config resolved and validated before anything starts."""
+    named SETTINGS-sSEED, each config resolved and validated before anything starts
+    (`grid.plan_grid`, which adds `env_kwargs` and `env_wrappers`)."""
     if not variations:
         raise ConfigError("ablate needs at least one --vary KEY=V1,V2")
     return plan_grid(
         [env], variations, preset=preset, overrides=overrides, seeds=seeds,
         first_seed=first_seed, steps=steps, sweep_dir=sweep_dir, env_in_names=False,
+        env_kwargs=env_kwargs, env_wrappers=env_wrappers,
     )  # fmt: skip
 
 

@@ -15,7 +15,13 @@ from pathlib import Path
 from typing import Any
 
 from dqnlab.analysis import status as run_states
-from dqnlab.config import Config, differing_settings, parse_overrides, resolve_config
+from dqnlab.config import (
+    Config,
+    differing_settings,
+    parse_overrides,
+    resolve_config,
+    with_env_arguments,
+)
 from dqnlab.errors import ConfigError, DqnlabError
 from dqnlab.run import rundir
 
@@ -56,7 +62,8 @@ class Sweep:
 
 def parse_variation(text: str) -> Variation:
     """`KEY=V1,V2,...` or linked `KEY1+KEY2=A1+A2,B1+B2`; values are read as TOML (as
-    `--set`), and commas inside brackets belong to the value (`mlp_hidden_sizes=[64,64],[256]`)."""
+    `--set`), and commas inside brackets or braces belong to the value
+    (`mlp_hidden_sizes=[64,64],[256]`, `env_kwargs={map_name="4x4"},{map_name="8x8"}`)."""
     names, sep, values = text.partition("=")
     keys = tuple(name.strip() for name in names.split("+"))
     if not sep or not all(keys) or not values.strip():
@@ -81,7 +88,7 @@ def parse_variation(text: str) -> Variation:
 def _split_top_level(text: str) -> list[str]:
     pieces, depth, current = [], 0, ""
     for character in text:
-        depth += {"[": 1, "]": -1}.get(character, 0)
+        depth += {"[": 1, "]": -1, "{": 1, "}": -1}.get(character, 0)
         if character == "," and depth == 0:
             pieces.append(current.strip())
             current = ""
@@ -98,6 +105,8 @@ def _value_text(value: Any) -> str:
         return "true" if value else "false"
     if isinstance(value, (list, tuple)):
         return "-".join(str(v) for v in value)
+    if isinstance(value, dict):  # env_kwargs: KEY=VALUE pairs
+        return "+".join(f"{k}={_value_text(v)}" for k, v in value.items())
     return str(value)
 
 
@@ -142,10 +151,13 @@ def plan_grid(
     steps: int | None,
     sweep_dir: Path,
     env_in_names: bool = True,
+    env_kwargs: dict[str, Any] | None = None,
+    env_wrappers: Sequence[str] = (),
 ) -> Sweep:
     """Every run of envs × the product of the variations × seeds, each config resolved
-    and validated before anything starts. Run names are ENV-SETTINGS-sSEED (`ablate`,
-    one environment: SETTINGS-sSEED)."""
+    and validated before anything starts, `env_kwargs` and `env_wrappers` (--env-kwarg,
+    --wrapper) added to its own. Run names are ENV-SETTINGS-sSEED (`ablate`, one
+    environment: SETTINGS-sSEED)."""
     from dqnlab.envs import is_atari
 
     if seeds <= 0:
@@ -175,6 +187,7 @@ def plan_grid(
                 config = resolve_config(
                     env_preset, {**overrides, **settings}, env=env, seed=seed, total_steps=steps
                 )
+                config = with_env_arguments(config, env_kwargs or {}, env_wrappers)
                 name = _safe("-".join(part for part in (prefix, label, f"s{seed}") if part))
                 sweep.runs.append(PlannedRun(name, sweep_dir / name, config, settings))
     return sweep

@@ -8,8 +8,8 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-from dqnlab.config import parse_overrides
-from dqnlab.envs import check_env_name, is_atari
+from dqnlab.config import parse_overrides, parse_pairs
+from dqnlab.envs import check_env, is_atari
 from dqnlab.errors import DqnlabError
 from dqnlab.run.rundir import default_sweep_dir
 from dqnlab.sweeps.ablate import default_jobs, plan_sweep
@@ -41,11 +41,14 @@ def plan_sweep_options(
     gpus_per_run: float,
     memory_per_run_gb: float | None,
     max_retries: int,
+    env_kwargs: Sequence[str] = (),
+    wrappers: Sequence[str] = (),
 ) -> SweepPlan:
     """`dqnlab sweep`'s options checked in the order a user reads them: --env (comma-
-    separated) or --games (`grid.game_set`), --vary and --set texts, the default sweep
-    directory (sweeps/GAMES-KEYS), the grid and the directory it goes into, then each run's
-    resources (memory in GB)."""
+        separated) or --games (`grid.game_set`), --vary and --set texts, the default sweep
+        directory (sweeps/GAMES-KEYS), the grid and the directory it goes into, then each run's
+        resources (memory in GB). `env_kwargs` (--env-kwarg KEY=VALUE texts) and `wrappers` are
+    added to every run's env_kwargs and env_wrappers."""
     if (env is None) == (games is None):
         raise DqnlabError(
             "dqnlab sweep needs one of --env ENV[,ENV...] or --games nature49|atari57|FILE"
@@ -54,8 +57,6 @@ def plan_sweep_options(
         raise DqnlabError(f"--max-retries {max_retries} must be 0 or more")
     envs = game_set(games) if games else [name.strip() for name in (env or "").split(",")]
     envs = [name for name in envs if name]
-    for name in envs:
-        check_env_name(name)
     variations = [parse_variation(text) for text in vary]
     keys = [key for variation in variations for key in variation.keys]
     label = Path(games).stem if games else "+".join(envs)
@@ -63,7 +64,9 @@ def plan_sweep_options(
     sweep = plan_grid(
         envs, variations, preset=preset, overrides=parse_overrides(settings), seeds=seeds,
         first_seed=first_seed, steps=steps, sweep_dir=sweep_dir,
+        env_kwargs=parse_pairs(list(env_kwargs), "--env-kwarg"), env_wrappers=wrappers,
     )  # fmt: skip
+    check_envs(sweep)
     check_sweep_dir(sweep)
     memory = int(memory_per_run_gb * 1e9) if memory_per_run_gb is not None else None
     if memory is not None and memory <= 0:
@@ -82,11 +85,13 @@ def plan_ablation_options(
     first_seed: int,
     steps: int | None,
     sweep_dir: Path | None,
+    env_kwargs: Sequence[str] = (),
+    wrappers: Sequence[str] = (),
 ) -> Sweep:
     """`dqnlab ablate`'s options checked: the environment, the --vary and --set texts, the
     default preset (nature for Atari, classic otherwise) and sweep directory
-    (sweeps/ENV-KEYS), the grid (`ablate.plan_sweep`) and the directory it goes into."""
-    check_env_name(env)
+    (sweeps/ENV-KEYS), the grid (`ablate.plan_sweep`), the environment of each run (with
+    --env-kwarg and --wrapper added) and the directory it goes into."""
     variations = [parse_variation(text) for text in vary]
     keys = [key for variation in variations for key in variation.keys]
     sweep_dir = sweep_dir or default_sweep_dir(env, keys)
@@ -99,9 +104,24 @@ def plan_ablation_options(
         first_seed=first_seed,
         steps=steps,
         sweep_dir=sweep_dir,
+        env_kwargs=parse_pairs(list(env_kwargs), "--env-kwarg"),
+        env_wrappers=wrappers,
     )
+    check_envs(sweep)
     check_sweep_dir(sweep)
     return sweep
+
+
+def check_envs(sweep: Sweep) -> None:
+    """Each environment the sweep's runs build (name, env_kwargs, env_wrappers) made once
+    and checked, before any run starts: --vary may give env_kwargs several values."""
+    checked: list[tuple[str, dict, tuple[str, ...]]] = []
+    for run in sweep.runs:
+        config = run.config
+        key = (config.env, config.env_kwargs, config.env_wrappers)
+        if key not in checked:
+            checked.append(key)
+            check_env(config)
 
 
 def ablation_jobs(sweep: Sweep, jobs: int | None) -> int:

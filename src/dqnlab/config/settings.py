@@ -1,4 +1,5 @@
-"""Typed, validated configuration and the presets that fill it.
+"""Typed, validated configuration: `Config`, the accepted values of its settings, and what
+a checkpoint must match to be resumed.
 
 Every faithful detail of the Nature DQN is one field of `Config`; the `nature` preset
 (`presets/nature.toml`) sets each to DeepMind's value. Units are part of every name:
@@ -8,27 +9,19 @@ a *frame* is one raw emulator frame, a *step* is one agent decision.
 from __future__ import annotations
 
 import dataclasses
-import difflib
 import hashlib
 import json
-import sys
-import typing
 from dataclasses import dataclass, field
-from importlib import resources
-from pathlib import Path
 from typing import Any
 
 import numpy as np
-
-if sys.version_info >= (3, 11):
-    import tomllib
-else:  # pragma: no cover
-    import tomli as tomllib
 
 from dqnlab.errors import ConfigError
 
 
 def _setting(default: Any, doc: str) -> Any:
+    if isinstance(default, dict):  # a fresh table for each Config
+        return field(default_factory=lambda: dict(default), metadata={"doc": doc})
     return field(default=default, metadata={"doc": doc})
 
 
@@ -37,7 +30,27 @@ class Config:
     """One run's settings. Build with `resolve_config`, which validates every field."""
 
     # Environment.
-    env: str = _setting("", "Atari game as ale-py names it, a Gymnasium id, or module:EnvClass")
+    env: str = _setting(
+        "",
+        "Atari game as ale-py names it, a Gymnasium id (also one an installed package "
+        "provides), module:Env-id, or module:EnvClass",
+    )
+    env_kwargs: dict[str, Any] = _setting(
+        {},
+        "Keyword arguments of a Gymnasium environment's constructor (gymnasium.make(env, "
+        "**env_kwargs), or the module:Factory called with them), any TOML values",
+    )
+    env_wrappers: tuple[str, ...] = _setting(
+        (),
+        "module:callable wrappers applied in order around a Gymnasium environment "
+        "(env = callable(env)), each returning a gymnasium.Env",
+    )
+    observation_images: str = _setting(
+        "auto",
+        "How Box observation parts are read: auto (rank 3, or rank 2 of uint8 or bool: an "
+        "image; else a vector), all (every Box part of rank 2 or 3 is an image), none (every "
+        "part flattened into the vector)",
+    )
     seed: int = _setting(0, "Seeds every random stream (Python, NumPy, PyTorch, environments)")
     # Atari pipeline (ignored for other environments).
     action_repeat_frames: int = _setting(4, "Raw frames each agent action is repeated for")
@@ -60,7 +73,9 @@ class Config:
     reward_clip: float = _setting(1.0, "Rewards for learning are clipped to [-x, x] (0: off)")
     # Observation history and network.
     history_length: int = _setting(4, "Agent observations stacked into one network input")
-    network: str = _setting("auto", "auto, nature_cnn, mlp, or module:factory(obs_shape, n)")
+    network: str = _setting(
+        "auto", "auto, nature_cnn, small_cnn, multi_input, mlp, or module:factory(obs_shape, n)"
+    )
     mlp_hidden_sizes: tuple[int, ...] = _setting((256, 256), "Hidden layer widths of the MLP")
     # Replay memory.
     replay_capacity: int = _setting(1_000_000, "Transitions held in replay memory")
@@ -206,15 +221,16 @@ class Config:
     def to_dict(self) -> dict[str, Any]:
         values = dataclasses.asdict(self)
         values["mlp_hidden_sizes"] = list(self.mlp_hidden_sizes)
+        values["env_wrappers"] = list(self.env_wrappers)
         return values
 
 
 FIELD_NAMES = tuple(f.name for f in dataclasses.fields(Config))
-_DEFAULTS = {f.name: f.default for f in dataclasses.fields(Config)}
 WANDB_PROJECT_FORBIDDEN = tuple("/\\#?%:")  # as wandb's Settings.validate_project
 # The accepted values of each setting that takes one of a few names; modules that
 # dispatch on a setting read its list here.
 CHOICES: dict[str, tuple[str, ...]] = {
+    "observation_images": ("auto", "all", "none"),
     "frame_pooling": ("max_rgb", "max_gray", "none"),
     "grayscale": ("luminance", "ale"),
     "byte_conversion": ("truncate", "round"),
@@ -282,6 +298,7 @@ def _validate(config: Config) -> None:
             f"batch_size = {config.batch_size} exceeds replay_capacity = {config.replay_capacity}"
         )
     _validate_parts(config)
+    _validate_env_arguments(config)
     if any(width <= 0 for width in config.mlp_hidden_sizes):
         raise ConfigError(f"mlp_hidden_sizes = {list(config.mlp_hidden_sizes)} must be positive")
     # W&B would refuse such a project name, but only once the run has started.
@@ -296,6 +313,16 @@ def _validate(config: Config) -> None:
 def _is_import_path(value: str) -> bool:
     module, sep, name = value.partition(":")
     return bool(sep and module and name)
+
+
+def _validate_env_arguments(config: Config) -> None:
+    if not isinstance(config.env_kwargs, dict):
+        raise ConfigError(f"env_kwargs = {config.env_kwargs!r} must be a table (a dict)")
+    for wrapper in config.env_wrappers:
+        if not _is_import_path(wrapper):
+            raise ConfigError(f"env_wrappers: {wrapper!r} is not module:callable")
+    if "render_mode" in config.env_kwargs:  # videos ask for frames through it
+        raise ConfigError("env_kwargs: render_mode is dqnlab's to set (videos); leave it out")
 
 
 def _validate_parts(config: Config) -> None:
@@ -340,8 +367,11 @@ ADDED_WITH_DEFAULTS = (
     "target", "n_step", "distributional", "distributional_atoms", "distributional_v_min",
     "distributional_v_max", "loss", "dueling", "noisy", "noisy_sigma0", "torso",
     "replay_sampling", "priority_exponent", "priority_epsilon", "importance_exponent_start",
-    "max_gradient_norm", "policy",
+    "max_gradient_norm", "policy", "env_kwargs", "env_wrappers", "observation_images",
 )  # fmt: skip
+
+
+_DEFAULTS = Config().to_dict()
 
 
 def config_fingerprint(config: Config) -> str:
@@ -353,7 +383,9 @@ def config_fingerprint(config: Config) -> str:
         for k, v in config.to_dict().items()
         if k not in RESUMABLE_CHANGES and not (k in ADDED_WITH_DEFAULTS and v == _DEFAULTS[k])
     }
-    canonical = json.dumps(values, sort_keys=True, separators=(",", ":"), ensure_ascii=True)
+    canonical = json.dumps(  # str: a TOML date or time in env_kwargs
+        values, sort_keys=True, separators=(",", ":"), ensure_ascii=True, default=str
+    )
     return hashlib.sha256(canonical.encode()).hexdigest()
 
 
@@ -376,125 +408,3 @@ DEFAULT_EVALUATION_SEED = 12345
 def derive_seeds(seed: int, count: int) -> list[int]:
     """Independent child seeds for each random stream, all from the one run seed."""
     return [int(s.generate_state(1)[0]) for s in np.random.SeedSequence(seed).spawn(count)]
-
-
-# Presets ------------------------------------------------------------------------------
-
-
-def preset_names() -> list[str]:
-    files = resources.files("dqnlab").joinpath("presets").iterdir()
-    return sorted(f.name.removesuffix(".toml") for f in files if f.name.endswith(".toml"))
-
-
-def load_preset(name_or_path: str) -> dict[str, Any]:
-    """Read a preset by name (shipped in the package) or from a TOML file path."""
-    path = Path(name_or_path)
-    if name_or_path.endswith(".toml") and path.is_file():
-        text = path.read_text()
-    elif name_or_path in preset_names():
-        text = (resources.files("dqnlab") / "presets" / f"{name_or_path}.toml").read_text()
-    else:
-        raise ConfigError(
-            f"unknown preset {name_or_path!r}; accepted: {', '.join(preset_names())} "
-            "or the path of a .toml file"
-        )
-    try:
-        values = tomllib.loads(text)
-    except tomllib.TOMLDecodeError as error:
-        raise ConfigError(f"preset {name_or_path!r} is not valid TOML: {error}") from None
-    _check_names(values, f"preset {name_or_path!r}")
-    return values
-
-
-def _check_names(values: dict[str, Any], where: str) -> None:
-    for name in values:
-        if name not in FIELD_NAMES:
-            close = difflib.get_close_matches(name, FIELD_NAMES, n=3)
-            hint = f"; did you mean {', '.join(close)}?" if close else ""
-            raise ConfigError(f"unknown setting {name!r} in {where}{hint}")
-
-
-def parse_overrides(pairs: list[str]) -> dict[str, Any]:
-    """Parse `key=value` strings; values are read as TOML, else taken as plain strings."""
-    values: dict[str, Any] = {}
-    for pair in pairs:
-        key, sep, raw = pair.partition("=")
-        key = key.strip()
-        if not sep or not key:
-            raise ConfigError(f"--set expects KEY=VALUE, got {pair!r}")
-        try:
-            values[key] = tomllib.loads(f"value = {raw.strip()}")["value"]
-        except tomllib.TOMLDecodeError:
-            values[key] = raw.strip()
-    _check_names(values, "--set")
-    return values
-
-
-def _coerce(name: str, value: Any) -> Any:
-    """Convert a value read from TOML or the command line to the field's declared type."""
-    expected = typing.get_type_hints(Config)[name]
-    try:
-        if expected is bool:
-            if isinstance(value, str) and value.lower() in ("true", "false"):
-                return value.lower() == "true"
-            if not isinstance(value, bool):
-                raise TypeError
-            return value
-        if expected is int:
-            if isinstance(value, bool) or (isinstance(value, float) and not value.is_integer()):
-                raise TypeError
-            return int(value)
-        if expected is float:
-            if isinstance(value, bool):
-                raise TypeError
-            return float(value)
-        if expected is str:
-            return str(value)
-        # tuple[int, ...]
-        if isinstance(value, (int, str)) and not isinstance(value, bool):
-            value = [int(v) for v in str(value).split(",") if v.strip()]
-        if any(isinstance(v, bool) or not isinstance(v, int) for v in value):
-            raise TypeError
-        return tuple(value)
-    except (TypeError, ValueError):
-        type_name = getattr(expected, "__name__", None) or "list of integers"
-        if expected not in (bool, int, float, str):
-            type_name = "list of integers"
-        raise ConfigError(f"{name} = {value!r} is not a valid {type_name}") from None
-
-
-def resolve_config(preset: str, overrides: dict[str, Any] | None = None, **explicit: Any) -> Config:
-    """The preset's values, then `overrides` (from --set), then explicit non-None arguments."""
-    values = load_preset(preset)
-    values.update(overrides or {})
-    values.update({k: v for k, v in explicit.items() if v is not None})
-    _check_names(values, "the configuration")
-    return Config(**{name: _coerce(name, value) for name, value in values.items()})
-
-
-def config_from_dict(values: dict[str, Any]) -> Config:
-    _check_names(values, "the saved configuration")
-    return Config(**{name: _coerce(name, value) for name, value in values.items()})
-
-
-def toml_value(value: Any) -> str:
-    """A setting's value as TOML writes it (strings quoted)."""
-    if isinstance(value, bool):
-        return "true" if value else "false"
-    if isinstance(value, str):
-        return '"' + value.replace("\\", "\\\\").replace('"', '\\"') + '"'
-    if isinstance(value, (list, tuple)):
-        return "[" + ", ".join(toml_value(v) for v in value) + "]"
-    return repr(value)
-
-
-def setting_text(value: Any) -> str:
-    """A setting's value as `--set` takes it: TOML, but a string as it is."""
-    return value if isinstance(value, str) else toml_value(value)
-
-
-def config_to_toml(config: Config) -> str:
-    lines = ["# Resolved dqnlab configuration of this run."]
-    for f in dataclasses.fields(Config):
-        lines.append(f"{f.name} = {toml_value(getattr(config, f.name))}  # {f.metadata['doc']}")
-    return "\n".join(lines) + "\n"

@@ -1,0 +1,59 @@
+"""Typed, validated configuration and the presets that fill it.
+
+Every faithful detail of the Nature DQN is one field of `Config` (`settings.py`); the
+`nature` preset (`presets/nature.toml`) sets each to DeepMind's value. Units are part of
+every name: a *frame* is one raw emulator frame, a *step* is one agent decision.
+`files.py` reads and writes settings as text: presets, `--set` overrides, `config.toml`.
+"""
+
+from dqnlab.config.files import (
+    config_from_dict,
+    config_to_toml,
+    load_preset,
+    parse_overrides,
+    parse_pairs,
+    parse_value,
+    preset_names,
+    resolve_config,
+    setting_text,
+    toml_value,
+    with_env_arguments,
+)
+from dqnlab.config.settings import (
+    ADDED_WITH_DEFAULTS,
+    CHOICES,
+    DEFAULT_EVALUATION_SEED,
+    FIELD_NAMES,
+    RESUMABLE_CHANGES,
+    USER_PARTS,
+    WANDB_PROJECT_FORBIDDEN,
+    Config,
+    config_fingerprint,
+    derive_seeds,
+    differing_settings,
+)
+
+__all__ = [
+    "ADDED_WITH_DEFAULTS",
+    "CHOICES",
+    "DEFAULT_EVALUATION_SEED",
+    "FIELD_NAMES",
+    "RESUMABLE_CHANGES",
+    "USER_PARTS",
+    "WANDB_PROJECT_FORBIDDEN",
+    "Config",
+    "config_fingerprint",
+    "config_from_dict",
+    "config_to_toml",
+    "derive_seeds",
+    "differing_settings",
+    "load_preset",
+    "parse_overrides",
+    "parse_pairs",
+    "parse_value",
+    "preset_names",
+    "resolve_config",
+    "setting_text",
+    "toml_value",
+    "with_env_arguments",
+]

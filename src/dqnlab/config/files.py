@@ -1,0 +1,190 @@
+"""Settings as text: the presets (TOML files), `--set KEY=VALUE` overrides, a run's
+`config.toml`, and a `Config` resolved from them and checked field by field."""
+
+from __future__ import annotations
+
+import dataclasses
+import datetime
+import difflib
+import re
+import sys
+import typing
+from importlib import resources
+from pathlib import Path
+from typing import Any
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover
+    import tomli as tomllib
+
+from dqnlab.config.settings import FIELD_NAMES, Config
+from dqnlab.errors import ConfigError
+
+
+def preset_names() -> list[str]:
+    files = resources.files("dqnlab").joinpath("presets").iterdir()
+    return sorted(f.name.removesuffix(".toml") for f in files if f.name.endswith(".toml"))
+
+
+def load_preset(name_or_path: str) -> dict[str, Any]:
+    """Read a preset by name (shipped in the package) or from a TOML file path."""
+    path = Path(name_or_path)
+    if name_or_path.endswith(".toml") and path.is_file():
+        text = path.read_text()
+    elif name_or_path in preset_names():
+        text = (resources.files("dqnlab") / "presets" / f"{name_or_path}.toml").read_text()
+    else:
+        raise ConfigError(
+            f"unknown preset {name_or_path!r}; accepted: {', '.join(preset_names())} "
+            "or the path of a .toml file"
+        )
+    try:
+        values = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as error:
+        raise ConfigError(f"preset {name_or_path!r} is not valid TOML: {error}") from None
+    _check_names(values, f"preset {name_or_path!r}")
+    return values
+
+
+def _check_names(values: dict[str, Any], where: str) -> None:
+    for name in values:
+        if name not in FIELD_NAMES:
+            close = difflib.get_close_matches(name, FIELD_NAMES, n=3)
+            hint = f"; did you mean {', '.join(close)}?" if close else ""
+            raise ConfigError(f"unknown setting {name!r} in {where}{hint}")
+
+
+def parse_value(raw: str) -> Any:
+    """A value given on the command line: read as a TOML literal (`false`, `3`, `[64, 64]`,
+    `{is_slippery = false}`), else taken as the plain string it is (`8x8`)."""
+    try:
+        return tomllib.loads(f"value = {raw.strip()}")["value"]
+    except tomllib.TOMLDecodeError:
+        return raw.strip()
+
+
+def parse_pairs(pairs: list[str], option: str) -> dict[str, Any]:
+    """`KEY=VALUE` strings, values read by `parse_value`; a later KEY wins."""
+    values: dict[str, Any] = {}
+    for pair in pairs:
+        key, sep, raw = pair.partition("=")
+        key = key.strip()
+        if not sep or not key:
+            raise ConfigError(f"{option} expects KEY=VALUE, got {pair!r}")
+        values[key] = parse_value(raw)
+    return values
+
+
+def parse_overrides(pairs: list[str]) -> dict[str, Any]:
+    """Parse `key=value` strings; values are read as TOML, else taken as plain strings."""
+    values = parse_pairs(pairs, "--set")
+    _check_names(values, "--set")
+    return values
+
+
+def _coerce(name: str, value: Any) -> Any:
+    """Convert a value read from TOML or the command line to the field's declared type."""
+    expected = typing.get_type_hints(Config)[name]
+    try:
+        if expected is bool:
+            if isinstance(value, str) and value.lower() in ("true", "false"):
+                return value.lower() == "true"
+            if not isinstance(value, bool):
+                raise TypeError
+            return value
+        if expected is int:
+            if isinstance(value, bool) or (isinstance(value, float) and not value.is_integer()):
+                raise TypeError
+            return int(value)
+        if expected is float:
+            if isinstance(value, bool):
+                raise TypeError
+            return float(value)
+        if expected is str:
+            return str(value)
+        if typing.get_origin(expected) is dict:  # a TOML table: any TOML values
+            if not isinstance(value, dict):
+                raise TypeError
+            return dict(value)
+        item = typing.get_args(expected)[0]  # tuple[int, ...] or tuple[str, ...]
+        if isinstance(value, (int, str)) and not isinstance(value, bool):
+            value = [v.strip() for v in str(value).split(",") if v.strip()]
+            value = [int(v) for v in value] if item is int else value
+        if any(isinstance(v, bool) or not isinstance(v, item) for v in value):
+            raise TypeError
+        return tuple(value)
+    except (TypeError, ValueError):
+        raise ConfigError(f"{name} = {value!r} is not a valid {_type_name(expected)}") from None
+
+
+def _type_name(expected: Any) -> str:
+    if expected in (bool, int, float, str):
+        return expected.__name__
+    if typing.get_origin(expected) is dict:
+        return 'table (e.g. {key = 1, other = "text"})'
+    item = typing.get_args(expected)[0]
+    return "list of integers" if item is int else "list of strings"
+
+
+def resolve_config(preset: str, overrides: dict[str, Any] | None = None, **explicit: Any) -> Config:
+    """The preset's values, then `overrides` (from --set), then explicit non-None arguments."""
+    values = load_preset(preset)
+    values.update(overrides or {})
+    values.update({k: v for k, v in explicit.items() if v is not None})
+    _check_names(values, "the configuration")
+    return Config(**{name: _coerce(name, value) for name, value in values.items()})
+
+
+def config_from_dict(values: dict[str, Any]) -> Config:
+    _check_names(values, "the saved configuration")
+    return Config(**{name: _coerce(name, value) for name, value in values.items()})
+
+
+def with_env_arguments(
+    config: Config, env_kwargs: dict[str, Any], env_wrappers: typing.Sequence[str]
+) -> Config:
+    """`config` with `--env-kwarg` and `--wrapper` added: each keyword argument replaces
+    one of the same name (from the preset or --set), the wrappers go after theirs."""
+    if not env_kwargs and not env_wrappers:
+        return config
+    return dataclasses.replace(
+        config,
+        env_kwargs={**config.env_kwargs, **env_kwargs},
+        env_wrappers=config.env_wrappers + tuple(env_wrappers),
+    )
+
+
+_BARE_KEY = re.compile(r"[A-Za-z0-9_-]+")
+
+
+def toml_value(value: Any) -> str:
+    """A setting's value as TOML writes it (strings quoted, a table inline)."""
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, str):
+        return '"' + value.replace("\\", "\\\\").replace('"', '\\"') + '"'
+    if isinstance(value, (list, tuple)):
+        return "[" + ", ".join(toml_value(v) for v in value) + "]"
+    if isinstance(value, dict):
+        items = ", ".join(f"{_toml_key(k)} = {toml_value(v)}" for k, v in value.items())
+        return "{" + items + "}"
+    if isinstance(value, (datetime.date, datetime.time)):  # datetime too: a date's subclass
+        return value.isoformat()
+    return repr(value)
+
+
+def _toml_key(key: str) -> str:
+    return key if _BARE_KEY.fullmatch(key) else toml_value(key)
+
+
+def setting_text(value: Any) -> str:
+    """A setting's value as `--set` takes it: TOML, but a string as it is."""
+    return value if isinstance(value, str) else toml_value(value)
+
+
+def config_to_toml(config: Config) -> str:
+    lines = ["# Resolved dqnlab configuration of this run."]
+    for f in dataclasses.fields(Config):
+        lines.append(f"{f.name} = {toml_value(getattr(config, f.name))}  # {f.metadata['doc']}")
+    return "\n".join(lines) + "\n"
