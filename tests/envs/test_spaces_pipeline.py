@@ -77,3 +77,35 @@ def test_the_image_choice_can_be_overridden(tmp_path: Path, capsys, monkeypatch,
     )  # fmt: skip
     assert code == 0, err
     assert load_run_config(run).network == ("auto" if images == "none" else "small_cnn")
+
+
+class NoFramesEnv(space_envs.DiscreteEnv):
+    """Says it renders rgb_array, but its render() gives nothing."""
+
+    def render(self):  # type: ignore[override]
+        return None
+
+
+def test_a_structured_observation_is_filmed_and_an_env_without_frames_says_why_not(
+    tmp_path: Path, capsys, monkeypatch
+) -> None:
+    for name, env in (
+        ("dict", "tests.envs.space_envs:NestedDictEnv"),
+        ("none", f"{__name__}:NoFramesEnv"),
+    ):
+        run = tmp_path / name
+        code, err = dqnlab_main(
+            capsys, monkeypatch, "train", "--env", env, "--run-dir", str(run), *SHORT
+        )
+        assert code == 0, err
+        code, err = dqnlab_main(
+            capsys, monkeypatch, "evaluate", str(run), "--episodes", "1",
+            "--video", str(tmp_path / f"{name}-video"),
+        )  # fmt: skip
+        if name == "dict":
+            assert code == 0, err
+            assert list((tmp_path / "dict-video").glob("*.mp4")), err
+        else:
+            assert code != 0
+            lines = [line for line in err.splitlines() if "error" in line]
+            assert len(lines) == 1 and "does not render rgb_array frames" in lines[0], err

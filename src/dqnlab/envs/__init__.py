@@ -14,6 +14,7 @@ A Gymnasium environment is made with the run's `env_kwargs` and wrapped in its
 from __future__ import annotations
 
 import importlib
+import inspect
 from collections.abc import Mapping, Sequence
 from typing import Any, Protocol
 
@@ -90,16 +91,11 @@ def make_env(
     env = _make_gymnasium(name, render_mode, config.env_kwargs, config.env_wrappers)
     try:
         return GymnasiumEnv(
-            env, seed=seed, max_episode_steps=cap, **_layout_kwargs(config.observation_images)
+            env, seed=seed, max_episode_steps=cap, observation_images=config.observation_images
         )
     except EnvError:
         env.close()
         raise
-
-
-def _layout_kwargs(observation_images: str) -> dict[str, Any]:
-    # Until GymnasiumEnv takes observation_images (envs/generic.py), "auto" is not passed.
-    return {} if observation_images == "auto" else {"observation_images": observation_images}
 
 
 def check_env(config: Config) -> None:
@@ -127,7 +123,7 @@ def check_env_name(
         return
     env = _make_gymnasium(name, None, env_kwargs, env_wrappers)
     try:
-        GymnasiumEnv(env, seed=0, **_layout_kwargs(observation_images))
+        GymnasiumEnv(env, seed=0, observation_images=observation_images)
     finally:
         env.close()
 
@@ -224,8 +220,20 @@ def _one_line(error: BaseException) -> str:
     return text if isinstance(error, gym.error.Error) else f"{type(error).__name__}: {text}"
 
 
+def _takes_render_mode(factory: Any) -> bool:
+    """Whether `factory` takes a `render_mode` keyword (Gymnasium's convention for envs)."""
+    try:
+        parameters = inspect.signature(factory).parameters.values()
+    except (TypeError, ValueError):
+        return False
+    return any(
+        p.name == "render_mode" or p.kind is inspect.Parameter.VAR_KEYWORD for p in parameters
+    )
+
+
 def _make_from_entry_point(name: str, kwargs: dict[str, Any], render_mode: str | None) -> gym.Env:
-    """`module:EnvClass` (any callable returning an env, called with `kwargs`), or
+    """`module:EnvClass` (any callable returning an env, called with `kwargs`, and with
+    `render_mode` when one is asked for and it takes one), or
     Gymnasium's `module:Env-v0` (the module registers the id when imported; made with
     `render_mode` too)."""
     module_name, _, attribute = name.partition(":")
@@ -236,8 +244,11 @@ def _make_from_entry_point(name: str, kwargs: dict[str, Any], render_mode: str |
     factory = getattr(module, attribute, None)
     if factory is None:  # importing the module may have registered the id
         return _make_registered(attribute, kwargs, render_mode, shown=name)
+    arguments = dict(kwargs)
+    if render_mode is not None and _takes_render_mode(factory):
+        arguments["render_mode"] = render_mode  # a video of a user's class
     try:
-        env = factory(**kwargs)
+        env = factory(**arguments)
     except TypeError as error:
         if kwargs:
             raise EnvError(f"{name}: env_kwargs rejected: {_one_line(error)}") from None

@@ -79,3 +79,14 @@ def test_a_directory_that_is_neither_run_nor_sweep_is_refused(
     with pytest.raises(DqnlabError):
         write_report([make(tmp_path)], tmp_path / "out", evaluate_missing=must_not_evaluate)
     assert not (tmp_path / "out").exists()
+
+
+def test_a_runs_environment_arguments_do_not_hide_its_preset() -> None:
+    from dqnlab.analysis.report.runs import matching_preset
+
+    config = resolve_config(
+        "double", env="FrozenLake-v1", env_kwargs={"is_slippery": False},
+        env_wrappers=("gymnasium.wrappers:RecordEpisodeStatistics",),
+    )  # fmt: skip
+    assert matching_preset(config) == "double"
+    assert matching_preset(resolve_config("double", env="pong", n_step=3)) is None

@@ -157,8 +157,11 @@ def matching_preset(config: Config) -> str | None:
     """The shipped preset `config` is, on every setting that defines a configuration (all
     but `NOT_GROUPED`), or None."""
     values = config.to_dict()
+    environment = {  # what the environment is, as `env`: no preset sets them
+        key: getattr(config, key) for key in ("env_kwargs", "env_wrappers", "observation_images")
+    }
     for name in preset_names():
-        preset = resolve_config(name, env=config.env).to_dict()
+        preset = resolve_config(name, env=config.env, **environment).to_dict()
         if all(values[k] == preset[k] for k in FIELD_NAMES if k not in NOT_GROUPED):
             return name
     return None
