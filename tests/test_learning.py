@@ -1,4 +1,6 @@
-"""Learning tests (slow, `make test-slow`): the classic preset solves CartPole-v1.
+"""Learning tests (slow, `make test-slow`): the classic preset solves CartPole-v1, with each
+part of the DQN family too, and reaches the optimal score of environments whose
+observations are not vectors.
 
 Solved means the run's best network scores a mean of at least 475 over 20 evaluation
 games (the Gymnasium threshold), within the preset's budget of at most 100k steps.
@@ -69,12 +71,16 @@ def test_each_variant_solves_cartpole(tmp_path: Path, variant: str) -> None:
 
 # Observation spaces other than a vector (docs/observation-spaces.md), each to its optimal
 # score: CliffWalking-v1 (a Discrete observation, one-hot: 13 steps along the cliff, -13;
-# no TimeLimit of its own, so capped here) and the nested-Dict cue game of the tests (8).
+# no TimeLimit of its own, so capped here), FrozenLake-v1 without slipping (reaching the
+# goal: 1) and the nested-Dict cue game of the tests (8).
 SPACE_TASKS = {
     "cliffwalking-discrete": (
         "CliffWalking-v1", 30_000, -13.0,
         {"max_episode_frames": 200, "eval_max_episode_frames": 100,
          "final_eval_max_episode_frames": 100},
+    ),
+    "frozenlake-discrete": (  # with an environment argument: the deterministic lake
+        "FrozenLake-v1", 20_000, 1.0, {"env_kwargs": {"is_slippery": False}},
     ),
     "nested-dict": ("tests.envs.space_envs:NestedDictEnv", 20_000, 8.0, {}),
 }  # fmt: skip
