@@ -60,7 +60,7 @@ def test_auto_picks_cnn_for_images_and_mlp_for_vectors() -> None:
     mlp = build_network("auto", (2, 5), 3, is_image=False, mlp_hidden_sizes=(7,))
     assert isinstance(mlp, MLP)
     assert [m.in_features for m in mlp.modules() if isinstance(m, nn.Linear)] == [10, 7]
-    with pytest.raises(ConfigError, match="needs image observations"):
+    with pytest.raises(ConfigError, match="needs observations that are one image"):
         build_network("nature_cnn", (1, 4), 2, is_image=False)
 
 
