@@ -79,7 +79,7 @@ def test_user_factory() -> None:
         build_network(f"{__name__}:wrong_shape_factory", (1, 4), 2, is_image=False)
     with pytest.raises(ConfigError, match="cannot be loaded"):
         build_network(f"{__name__}:missing", (1, 4), 2, is_image=False)
-    with pytest.raises(ConfigError, match="auto, nature_cnn, mlp"):
+    with pytest.raises(ConfigError, match="auto, nature_cnn, small_cnn, multi_input, mlp"):
         build_network("resnet", (1, 4), 2, is_image=False)
 
 
