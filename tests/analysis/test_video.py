@@ -200,10 +200,6 @@ def test_gymnasium_env_rendered_frames(video_format, tmp_path):
     ("name", "message"),
     [
         (NO_IMAGE_ID, "cannot be filmed: .* offers \\[\\]"),
-        (
-            f"{BlinkEnv.__module__}:BlinkEnv",
-            "cannot be filmed: .* made with None",
-        ),  # no render_mode
         (NO_RENDER_MODE_ID, "cannot be filmed: it cannot be made with render_mode"),
         (GRAY_IMAGE_ID, "renders an array of float64 \\(21, 33\\), not an RGB image"),
     ],

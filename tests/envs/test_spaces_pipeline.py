@@ -108,4 +108,4 @@ def test_a_structured_observation_is_filmed_and_an_env_without_frames_says_why_n
         else:
             assert code != 0
             lines = [line for line in err.splitlines() if "error" in line]
-            assert len(lines) == 1 and "does not render rgb_array frames" in lines[0], err
+            assert len(lines) == 1 and "renders None, not an RGB image" in lines[0], err

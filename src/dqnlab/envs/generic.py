@@ -144,13 +144,6 @@ class GymnasiumEnv:
         except gym.error.Error as error:  # e.g. pygame missing for the classic-control envs
             name = self.env.spec.id if self.env.spec else type(self.env.unwrapped).__name__
             raise EnvError(f"{name} cannot render its frames: {error}") from None
-        if not isinstance(frame, np.ndarray) or frame.ndim != 3:
-            name = self.env.spec.id if self.env.spec else type(self.env.unwrapped).__name__
-            modes = self.env.metadata.get("render_modes", [])
-            raise EnvError(
-                f"{name} does not render rgb_array frames (its render modes: "
-                f"{', '.join(modes) or 'none'}), so no video can be made of it"
-            )
         self.frame_callback(frame)
 
     def close(self) -> None:
