@@ -16,10 +16,14 @@ network files best.pt, last.pt ... are `rundir`'s).
 Each replay array is cut into chunks of `chunk_slots` slots. A save writes only the chunks
 holding slots written since the previous save and points the new manifest at the previous
 checkpoint's files for the rest, so a checkpoint of a 1M replay writes about a quarter of
-its 7 GB after 250k steps instead of all of it. A file that a checkpoint references is never
-modified: rewritten chunks get a new generation in their name. A checkpoint is complete
-when its manifest is valid and every file it names has the recorded size (checked always)
-and CRC-32 (checked when loading); anything else is skipped with a warning.
+its 7 GB after 250k steps instead of all of it. Slots never written are zeros and are not
+stored: a chunk none of whose slots was written is left out (null in the manifest), and a
+raw chunk is cut after its last written slot, so the first checkpoint of a run holds the
+filled part of the replay, not the whole preallocated one. A file that a checkpoint
+references is never modified: rewritten chunks get a new generation in their name. A
+checkpoint is complete when its manifest is valid and every file it names has the
+recorded size (checked always) and CRC-32 (checked when loading); anything else is
+skipped with a warning.
 
 Checksum: CRC-32 (zlib) is 2-4 times faster than BLAKE2b (docs/benchmark.md: 1.7 GB/s
 against 0.74 GB/s on 200 MB here). A checksum here detects torn or flipped bytes, not
@@ -143,7 +147,7 @@ class CheckpointStore:
 
     One writer at a time. The store remembers the checkpoint it last saved or loaded: the
     next save takes the unchanged replay chunks from it. A fresh store has none, so its
-    first save writes every chunk.
+    first save writes every chunk that holds a written slot (`save`).
     """
 
     def __init__(
@@ -174,7 +178,9 @@ class CheckpointStore:
         `arrays` are the replay arrays (same first dimension, the capacity; a
         `ChunkedArray` is written chunk by chunk as it holds them); `changed_slots`
         is the ring range [start, stop) of slots written since the last save or load of
-        this store (stop < start wraps around; start == stop is nothing), None for all.
+        this store (stop < start wraps around; start == stop is nothing), None for all. A
+        store that has neither saved nor loaded counts from the arrays' creation: their
+        slots outside the range are zeros, and are not stored.
         A failed save leaves the earlier checkpoints as they were and no files behind.
         """
         capacity = check_arrays(arrays)
