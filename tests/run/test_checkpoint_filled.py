@@ -198,14 +198,14 @@ def test_a_resumed_run_with_filled_part_checkpoints_is_bit_identical(
     tmp_path: Path, monkeypatch
 ) -> None:
     """CartPole with a 2,000-slot replay in chunks of 100: checkpoints every 50 steps hold
-    the filled slots only; a run stopped after step 187 and resumed from 150 ends as one
+    the filled slots only; a run stopped after step 137 and resumed from 100 ends as one
     that ran through."""
     monkeypatch.setattr(
         train_module, "CheckpointStore", functools.partial(CheckpointStore, chunk_slots=100)
     )
     config = resolve_config(
-        "classic", env="CartPole-v1", total_steps=300, replay_start_steps=50,
-        eval_period_steps=150, eval_steps=50, checkpoint_period_steps=50, replay_capacity=2000,
+        "classic", env="CartPole-v1", total_steps=200, replay_start_steps=50,
+        eval_period_steps=100, eval_steps=50, checkpoint_period_steps=50, replay_capacity=2000,
         seed=4,
     )  # fmt: skip
     device = torch.device("cpu")
@@ -218,16 +218,16 @@ def test_a_resumed_run_with_filled_part_checkpoints_is_bit_identical(
     original = TrainingState.advance
 
     def crash(self):
-        if self.steps == 187:
+        if self.steps == 137:
             raise RuntimeError("the machine went down")
         return original(self)
 
     monkeypatch.setattr(TrainingState, "advance", crash)
     with pytest.raises(RuntimeError, match="went down"):
         train(config, resumed, device, progress=False, tensorboard=False)
-    frames = manifest(resumed, 150).arrays["frames"]
+    frames = manifest(resumed, 100).arrays["frames"]
     stored = sum(frames.stored_slots(index) for index in range(len(frames.chunks)))
-    assert 150 <= stored < 200 and frames.chunks[-1] is None
+    assert 100 <= stored < 200 and frames.chunks[-1] is None
     monkeypatch.setattr(TrainingState, "advance", original)
     train(config, resumed, device, progress=False, tensorboard=False, resume=True)
 
