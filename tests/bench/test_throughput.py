@@ -5,12 +5,15 @@ from __future__ import annotations
 import pytest
 import torch
 
+from dqnlab.bench import flops
 from dqnlab.bench.throughput import run_benchmark
 from dqnlab.config import resolve_config
 from dqnlab.run.lockstep import default_workers
 
 
-def test_benchmark_figures_on_a_small_replay() -> None:
+def test_benchmark_figures_on_a_small_replay(monkeypatch) -> None:
+    # A small matrix multiply: its size is a parameter, not what is tested.
+    monkeypatch.setattr(flops, "MATMUL_SIZE", 256)
     figures = run_benchmark(
         "pong", steps=40, replay_capacity=3000, device=torch.device("cpu"), update_repeats=3
     )
@@ -28,6 +31,15 @@ def test_benchmark_figures_on_a_small_replay() -> None:
     ):
         assert figures[name] > 0, name
     assert figures["device"] == "cpu" and figures["threads"] >= 1
+    # The update's FLOPs (bench/flops.py, Nature CNN, 6 Pong actions), its GFLOP/s in the
+    # update time measured, against the matrix multiply's in the same run.
+    assert figures["update_gflop"] == pytest.approx(32 * (4 * 18_692_096 - 6_553_600) / 1e9)
+    achieved = figures["update_gflop"] / (figures["update_ms"] / 1e3)
+    assert figures["update_gflop_per_s"] == pytest.approx(achieved)
+    assert figures["matmul_size"] == 256 and figures["matmul_threads"] == figures["threads"]
+    assert figures["update_fraction_of_matmul"] == pytest.approx(
+        achieved / figures["matmul_gflop_per_s"]
+    )
     # The final evaluation's games, all at once (30 in the nature preset), on every core.
     assert figures["eval_envs"] == 30
     assert figures["eval_workers"] == default_workers(resolve_config("nature", env="pong"))

@@ -6,7 +6,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from dqnlab.bench import variants
+from dqnlab.bench import flops, variants
 from dqnlab.bench.variants import FAMILY, measure_variants, parse_variants
 from dqnlab.errors import ConfigError
 
@@ -14,6 +14,7 @@ from dqnlab.errors import ConfigError
 def test_every_variants_figures_and_their_ratios(monkeypatch) -> None:
     # A small tree for the full-replay figure: its size is a parameter, not what is tested.
     monkeypatch.setattr(variants, "FULL_REPLAY_SLOTS", 4096)
+    monkeypatch.setattr(flops, "MATMUL_SIZE", 256)
     presets = ["nature", "double", "prioritized"]
     figures = measure_variants(
         presets, "pong", steps=30, replay_capacity=1200, device=torch.device("cpu"),
@@ -23,6 +24,11 @@ def test_every_variants_figures_and_their_ratios(monkeypatch) -> None:
         for figure in ("sample_us", "update_ms", "train_frames_per_second"):
             assert figures[f"{preset}_{figure}"] > 0, (preset, figure)
         assert len(figures[f"{preset}_train_frames_per_second_runs"]) == 2
+        achieved = figures[f"{preset}_update_gflop"] / (figures[f"{preset}_update_ms"] / 1e3)
+        assert figures[f"{preset}_update_gflop_per_s"] == pytest.approx(achieved)
+        assert figures[f"{preset}_update_fraction_of_matmul"] == pytest.approx(
+            achieved / figures[f"{preset}_matmul_gflop_per_s"]
+        )
         assert figures[f"{preset}_train_ratio_vs_nature"] == pytest.approx(
             figures[f"{preset}_train_frames_per_second"] / figures["nature_train_frames_per_second"]
         )
@@ -30,6 +36,9 @@ def test_every_variants_figures_and_their_ratios(monkeypatch) -> None:
         figures["prioritized_train_frames_per_second"] / figures["double_train_frames_per_second"]
     )
     assert figures["prioritized_1m_sample_and_update_us"] > 0
+    # The double target's extra forward pass on the next states: F per transition more.
+    forward = (figures["double_update_gflop"] - figures["nature_update_gflop"]) * 1e9 / 32
+    assert forward == pytest.approx(18_692_096)  # the Nature CNN, 6 Pong actions
     assert figures["variants"] == ",".join(presets)
 
 

@@ -175,13 +175,14 @@ class CompressedFrames:
         self._open_index: int | None = None
         self._open = np.zeros((chunk_slots, *frame_shape), dtype=self.dtype)
         self._open_bytes = self._open.data.cast("B")
-        zeros: dict[int, PackedChunk] = {}
+        # Zeros compressed once per chunk length (the last chunk may be shorter), shared.
+        self._zeros: dict[int, PackedChunk] = {}
         for index in range(self.chunks):
             start, stop = self.chunk_span(index)
             slots = stop - start
-            if slots not in zeros:
-                zeros[slots] = pack(codec, self._open[:slots], block_slots)
-            self._packed[index] = zeros[slots]
+            if slots not in self._zeros:
+                self._zeros[slots] = pack(codec, self._open[:slots], block_slots)
+            self._packed[index] = self._zeros[slots]
         self._scratch = np.empty((0, block_slots, *frame_shape), self.dtype)
         # Time spent compressing full chunks and decompressing reopened ones (the
         # benchmark's cost per step), and what was compressed.
@@ -346,3 +347,11 @@ class CompressedFrames:
             self._packed[index] = pack(self.codec, frames, self.block_slots)
         else:
             raise ValueError(f"chunk {index} has encoding {encoding!r}, unknown to this replay")
+
+    def clear_chunk(self, index: int) -> None:
+        """Set chunk `index` to zeros, as before anything was written: a chunk that a
+        checkpoint left out because it was never written."""
+        start, stop = self.chunk_span(index)
+        if index == self._open_index:
+            self._open_index = None
+        self._packed[index] = self._zeros[stop - start]

@@ -1,8 +1,9 @@
 """Throughput and memory of the Nature DQN on the machine it runs on.
 
 Figures: replay memory per transition and the resident memory of a filled replay, the
-time to sample a minibatch, the update alone, training throughput with the nature preset
-after the replay-start phase, and evaluation throughput at epsilon 0.05: the final
+time to sample a minibatch, the update alone (and its GFLOP/s against a dense float32
+matrix multiply's on the same threads, `flops.py`), training throughput with the nature
+preset after the replay-start phase, and evaluation throughput at epsilon 0.05: the final
 evaluation's (`play_games`, every core) and the periodic one's (`play`, one environment).
 """
 
@@ -17,6 +18,12 @@ import torch
 
 from dqnlab.algorithm.replay import ReplayMemory
 from dqnlab.bench.compression import measure_compression
+from dqnlab.bench.flops import (
+    agent_network_flops,
+    matmul_figures,
+    measure_matmul,
+    update_flop_figures,
+)
 from dqnlab.bench.measure import machine_figures, measure_training, median_sample_us
 from dqnlab.bench.sb3 import peer_available, run_sb3_dqn
 from dqnlab.config import resolve_config
@@ -102,6 +109,11 @@ def run_benchmark(
         agent.update(batch)[0].item()  # .item() waits for the device
         timings.append(time.perf_counter() - start)
     figures["update_ms"] = float(np.median(timings) * 1e3)
+    # The limit the update is held against, measured now, on the same threads.
+    matmul = measure_matmul(device)
+    flop = agent_network_flops(agent).update(config.batch_size, config.target)
+    figures.update(update_flop_figures("", flop, figures["update_ms"], matmul))
+    figures.update(matmul_figures(matmul))
 
     # Training after the replay-start phase, alternating with the peer when asked. Measured
     # where epsilon has reached its final 0.1, as for 49 of the 50M steps of a Nature run

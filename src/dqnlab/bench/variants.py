@@ -2,7 +2,8 @@
 
 Every variant is its shipped preset on the same game, with replays of the same size filled
 with the same frames. Per variant: the minibatch draw (for prioritized replay, with the
-priority update that follows every update), the update alone, and training frames/s once
+priority update that follows every update), the update alone (with its GFLOP/s against a
+dense float32 matrix multiply's timed right after it, `flops.py`), and training frames/s once
 learning runs, measured in alternating rounds so that a change in the machine's load falls
 on every variant alike. Frames/s are also given as a ratio to the `nature` preset's in the
 same run (and prioritized replay's to uniform's). Besides, the prioritized draw and update
@@ -19,6 +20,7 @@ import torch
 
 from dqnlab.algorithm.prioritized import measure_sampling
 from dqnlab.algorithm.replay import ReplayMemory
+from dqnlab.bench.flops import agent_network_flops, measure_matmul, update_flop_figures
 from dqnlab.bench.measure import machine_figures, measure_training
 from dqnlab.config import Config, preset_names, resolve_config
 from dqnlab.errors import ConfigError
@@ -108,7 +110,12 @@ def measure_variants(
         def update(agent: Any = agent, batch: Any = batch) -> None:
             agent.update(batch)[0].item()  # .item() waits for the device
 
-        figures[f"{preset}_update_ms"] = _median_us(update, update_repeats) / 1e3
+        update_ms = _median_us(update, update_repeats) / 1e3
+        figures[f"{preset}_update_ms"] = update_ms
+        matmul = measure_matmul(device)
+        flop = agent_network_flops(agent).update(config.batch_size, config.target)
+        figures.update(update_flop_figures(f"{preset}_", flop, update_ms, matmul))
+        figures[f"{preset}_matmul_gflop_per_s"] = matmul.median_gflop_per_s
         # Past the replay start and the epsilon anneal, as for most of a run.
         state.steps = config.replay_start_steps + config.epsilon_decay_steps
         for _ in range(100):

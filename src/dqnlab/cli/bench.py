@@ -74,6 +74,14 @@ def bench(
             "rainbow), and the prioritized draw on a full 1M-slot replay",
         ),
     ] = None,
+    checkpoint: Annotated[
+        bool,
+        typer.Option(
+            "--checkpoint",
+            help="Instead of the rest: the seconds and bytes of the nature preset's stop "
+            "checkpoint after 25,000 steps of random play, raw and lz4",
+        ),
+    ] = False,
     sweep_runs: Annotated[
         int, typer.Option(help="Tiny CartPole runs trained each way in each --sweep repeat")
     ] = 4,
@@ -103,6 +111,10 @@ def bench(
                 sweep_repeats,
                 echo=lambda line: typer.echo(line, err=True),
             )
+    elif checkpoint:
+        from dqnlab.bench.checkpoint import measure_stop_checkpoint
+
+        figures = measure_stop_checkpoint(env, device=resolve_device(device))
     elif variants is not None:
         from dqnlab.bench.variants import measure_variants, parse_variants
 

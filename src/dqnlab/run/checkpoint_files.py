@@ -24,7 +24,10 @@ import torch
 from dqnlab.algorithm.compression import RAW, decode_chunk
 from dqnlab.errors import DqnlabError
 
-STORE_FORMAT = "dqnlab-training-checkpoint-1"
+# Format 2 may leave a replay chunk out (null: never written, zeros) or cut a raw one short
+# (`slots`); format 1 wrote every chunk whole and is read as it is.
+STORE_FORMAT = "dqnlab-training-checkpoint-2"
+READ_FORMATS = ("dqnlab-training-checkpoint-1", STORE_FORMAT)
 MANIFEST_FILE = "MANIFEST.json"
 IO_PIECE_BYTES = 16 * 2**20  # checksum and write in pieces: no copy of a whole chunk
 STEP_DIR = re.compile(r"step-(\d{9,})")
@@ -52,6 +55,8 @@ class ChunkedArray(Protocol):
 
     def load_chunk(self, index: int, encoding: str, data: memoryview) -> None: ...
 
+    def clear_chunk(self, index: int) -> None: ...
+
 
 Arrays = Mapping[str, "np.ndarray | ChunkedArray"]
 
@@ -62,11 +67,16 @@ class FileRecord:
     size: int
     crc32: int
     encoding: str = RAW  # of a replay chunk: raw bytes, or a codec's (`compression`)
+    # Of a raw replay chunk cut short: it holds its first `slots` slots, the rest are zeros
+    # (never written). None: the whole chunk.
+    slots: int | None = None
 
     def to_json(self) -> dict[str, Any]:
-        body = {"file": self.name, "size": self.size, "crc32": f"{self.crc32:08x}"}
+        body: dict[str, Any] = {"file": self.name, "size": self.size, "crc32": f"{self.crc32:08x}"}
         if self.encoding != RAW:
             body["encoding"] = self.encoding
+        if self.slots is not None:
+            body["slots"] = self.slots
         return body
 
     @staticmethod
@@ -76,6 +86,7 @@ class FileRecord:
             int(data["size"]),
             int(data["crc32"], 16),
             str(data.get("encoding", RAW)),
+            None if data.get("slots") is None else int(data["slots"]),
         )
 
 
@@ -84,11 +95,20 @@ class ArrayRecord:
     dtype: str  # numpy dtype.str, e.g. "|u1"
     shape: tuple[int, ...]
     chunk_slots: int
-    chunks: tuple[FileRecord, ...]
+    # None: a chunk never written since the replay was made, all zeros: not stored.
+    chunks: tuple[FileRecord | None, ...]
 
     def chunk_span(self, index: int) -> tuple[int, int]:
         start = index * self.chunk_slots
         return start, min(start + self.chunk_slots, self.shape[0])
+
+    def stored_slots(self, index: int) -> int:
+        """How many of chunk `index`'s first slots its file holds (the rest are zeros)."""
+        chunk = self.chunks[index]
+        start, stop = self.chunk_span(index)
+        if chunk is None:
+            return 0
+        return stop - start if chunk.slots is None else chunk.slots
 
 
 @dataclass(frozen=True)
@@ -114,7 +134,9 @@ class Manifest:
                     "dtype": record.dtype,
                     "shape": list(record.shape),
                     "chunk_slots": record.chunk_slots,
-                    "chunks": [chunk.to_json() for chunk in record.chunks],
+                    "chunks": [
+                        None if chunk is None else chunk.to_json() for chunk in record.chunks
+                    ],
                 }
                 for name, record in self.arrays.items()
             },
@@ -130,14 +152,17 @@ class Manifest:
             recorded = int(body.pop("manifest_crc32"), 16)
             if zlib.crc32(canonical(body)) != recorded:
                 raise Incomplete(f"{MANIFEST_FILE} fails its own checksum")
-            if body["format"] != STORE_FORMAT:
+            if body["format"] not in READ_FORMATS:
                 raise Incomplete(f"{MANIFEST_FILE} has format {body['format']!r}")
             arrays = {
                 name: ArrayRecord(
                     dtype=str(record["dtype"]),
                     shape=tuple(int(n) for n in record["shape"]),
                     chunk_slots=int(record["chunk_slots"]),
-                    chunks=tuple(FileRecord.from_json(chunk) for chunk in record["chunks"]),
+                    chunks=tuple(
+                        None if chunk is None else FileRecord.from_json(chunk)
+                        for chunk in record["chunks"]
+                    ),
                 )
                 for name, record in body["arrays"].items()
             }
@@ -244,6 +269,7 @@ def check_sizes(manifest: Manifest, directory: Path, replay_directory: Path) -> 
         (replay_directory / chunk.name, chunk)
         for record in manifest.arrays.values()
         for chunk in record.chunks
+        if chunk is not None
     ]
     for path, record in files:
         size = size_of(path)
@@ -296,7 +322,8 @@ def _unsafe_reason(error: pickle.UnpicklingError) -> str:
 def load_arrays(manifest: Manifest, replay_directory: Path, into: Arrays | None) -> None:
     """Read every chunk, verifying its CRC-32, into `into` (None: verify only). A raw array
     is filled in place (a compressed chunk decompressed into it); a `ChunkedArray` gets
-    each chunk's bytes as stored."""
+    each chunk's bytes as stored. Slots no file holds (a chunk left out, or past the end of
+    one cut short) are set to zeros, as the saved replay held them."""
     if into is not None:
         expected = set(manifest.arrays)
         if set(into) != expected:
@@ -321,22 +348,56 @@ def load_arrays(manifest: Manifest, replay_directory: Path, into: Arrays | None)
             elif not target.flags.c_contiguous or not target.flags.writeable:
                 raise ValueError(f"{name} must be a writeable C-contiguous array")
         for index, chunk in enumerate(record.chunks):
-            path = replay_directory / chunk.name
-            start, stop = record.chunk_span(index)
-            if target is None:
-                read_verified(path, chunk)
-            elif isinstance(target, ChunkedArray) or chunk.encoding != RAW:
-                data = memoryview(bytearray(chunk.size))
-                read_verified(path, chunk, data)
-                try:
-                    if isinstance(target, ChunkedArray):
-                        target.load_chunk(index, chunk.encoding, data)
-                    else:
-                        decode_chunk(chunk.encoding, data, target[start:stop])
-                except ValueError as error:
-                    raise Incomplete(f"{chunk.name} cannot be decoded ({error})") from None
+            _load_chunk(record, index, chunk, replay_directory, target)
+
+
+def _load_chunk(
+    record: ArrayRecord,
+    index: int,
+    chunk: FileRecord | None,
+    replay_directory: Path,
+    target: np.ndarray | ChunkedArray | None,
+) -> None:
+    start, stop = record.chunk_span(index)
+    stored = record.stored_slots(index)
+    if chunk is not None and (
+        not 0 < stored <= stop - start or (chunk.slots is not None and chunk.encoding != RAW)
+    ):
+        raise Incomplete(f"{chunk.name} is recorded as {stored} slots of a chunk of {stop - start}")
+    if chunk is None:
+        if isinstance(target, ChunkedArray):
+            target.clear_chunk(index)
+        elif target is not None:
+            zero_unless_zero(target[start:stop])
+        return
+    path = replay_directory / chunk.name
+    if target is None:
+        read_verified(path, chunk)
+    elif isinstance(target, ChunkedArray) or chunk.encoding != RAW:
+        # A chunk cut short is raw: its stored slots, then zeros, make the whole chunk.
+        whole = stored == stop - start
+        row_bytes = int(np.prod(record.shape[1:], dtype=np.int64)) * np.dtype(record.dtype).itemsize
+        data = memoryview(bytearray(chunk.size if whole else (stop - start) * row_bytes))
+        read_verified(path, chunk, data if whole else data[: chunk.size])
+        try:
+            if isinstance(target, ChunkedArray):
+                target.load_chunk(index, chunk.encoding, data)
             else:
-                read_verified(path, chunk, target[start:stop].data.cast("B"))
+                decode_chunk(chunk.encoding, data, target[start:stop])
+        except ValueError as error:
+            raise Incomplete(f"{chunk.name} cannot be decoded ({error})") from None
+    else:
+        read_verified(path, chunk, target[start : start + stored].data.cast("B"))
+        zero_unless_zero(target[start + stored : stop])
+
+
+def zero_unless_zero(array: np.ndarray) -> None:
+    """Set `array` (C-contiguous) to zeros, reading it first: memory never written (a fresh
+    replay's) is left unwritten, so it stays unallocated."""
+    flat = array.reshape(-1).view(np.uint8)
+    whole_words = flat.nbytes // 8 * 8
+    if flat[:whole_words].view(np.uint64).any() or flat[whole_words:].any():
+        array[...] = 0
 
 
 def chunk_slots_of(array: np.ndarray | ChunkedArray, default: int) -> int:
@@ -368,17 +429,27 @@ def changed_chunks(
     changed_slots: tuple[int, int] | None, capacity: int, chunk_slots: int
 ) -> set[int] | None:
     """The chunk indices holding the ring range [start, stop); None for every chunk."""
+    extents = changed_extents(changed_slots, capacity, chunk_slots)
+    return None if extents is None else set(extents)
+
+
+def changed_extents(
+    changed_slots: tuple[int, int] | None, capacity: int, chunk_slots: int
+) -> dict[int, int] | None:
+    """Per chunk holding a slot of the ring range [start, stop): the number of its first
+    slots that reach its last slot in the range; None for every chunk, whole."""
     if changed_slots is None:
         return None
     start, stop = changed_slots
     if not (0 <= start < capacity and 0 <= stop <= capacity):
         raise ValueError(f"changed_slots {changed_slots} is outside a capacity of {capacity}")
     spans = [(start, stop)] if start <= stop else [(start, capacity), (0, stop)]
-    chunks: set[int] = set()
+    extents: dict[int, int] = {}
     for low, high in spans:
-        if low < high:
-            chunks.update(range(low // chunk_slots, (high - 1) // chunk_slots + 1))
-    return chunks
+        for index in range(low // chunk_slots, (high - 1) // chunk_slots + 1) if low < high else ():
+            end = min(high, (index + 1) * chunk_slots) - index * chunk_slots
+            extents[index] = max(extents.get(index, 0), end)
+    return extents
 
 
 def step_of(directory: Path) -> int:

@@ -16,10 +16,14 @@ network files best.pt, last.pt ... are `rundir`'s).
 Each replay array is cut into chunks of `chunk_slots` slots. A save writes only the chunks
 holding slots written since the previous save and points the new manifest at the previous
 checkpoint's files for the rest, so a checkpoint of a 1M replay writes about a quarter of
-its 7 GB after 250k steps instead of all of it. A file that a checkpoint references is never
-modified: rewritten chunks get a new generation in their name. A checkpoint is complete
-when its manifest is valid and every file it names has the recorded size (checked always)
-and CRC-32 (checked when loading); anything else is skipped with a warning.
+its 7 GB after 250k steps instead of all of it. Slots never written are zeros and are not
+stored: a chunk none of whose slots was written is left out (null in the manifest), and a
+raw chunk is cut after its last written slot, so the first checkpoint of a run holds the
+filled part of the replay, not the whole preallocated one. A file that a checkpoint
+references is never modified: rewritten chunks get a new generation in their name. A
+checkpoint is complete when its manifest is valid and every file it names has the
+recorded size (checked always) and CRC-32 (checked when loading); anything else is
+skipped with a warning.
 
 Checksum: CRC-32 (zlib) is 2-4 times faster than BLAKE2b (docs/benchmark.md: 1.7 GB/s
 against 0.74 GB/s on 200 MB here). A checksum here detects torn or flipped bytes, not
@@ -40,7 +44,7 @@ import os
 import re
 import shutil
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -58,7 +62,7 @@ from dqnlab.run.checkpoint_files import (
     FileRecord,
     Incomplete,
     Manifest,
-    changed_chunks,
+    changed_extents,
     check_arrays,
     check_loadable,
     check_sizes,
@@ -87,6 +91,17 @@ _MANIFEST_SLACK_BYTES = 2**20
 _CHUNK_FILE = re.compile(r"([A-Za-z0-9_]+)\.(\d{5,})\.g(\d{9,})\.bin(\.tmp)?")
 _PARTIAL_PREFIX = ".partial-"
 _REPLACED_PREFIX = ".replaced-"
+
+
+@dataclass(frozen=True)
+class _PlannedChunk:
+    """Slots [start, stop) of a replay array: store its first `slots` (0: none, zeros), in
+    the earlier file `reused` or in a new one (None)."""
+
+    start: int
+    stop: int
+    slots: int
+    reused: FileRecord | None
 
 
 class CheckpointWarning(UserWarning):
@@ -132,7 +147,7 @@ class CheckpointStore:
 
     One writer at a time. The store remembers the checkpoint it last saved or loaded: the
     next save takes the unchanged replay chunks from it. A fresh store has none, so its
-    first save writes every chunk.
+    first save writes every chunk that holds a written slot (`save`).
     """
 
     def __init__(
@@ -163,7 +178,9 @@ class CheckpointStore:
         `arrays` are the replay arrays (same first dimension, the capacity; a
         `ChunkedArray` is written chunk by chunk as it holds them); `changed_slots`
         is the ring range [start, stop) of slots written since the last save or load of
-        this store (stop < start wraps around; start == stop is nothing), None for all.
+        this store (stop < start wraps around; start == stop is nothing), None for all. A
+        store that has neither saved nor loaded counts from the arrays' creation: their
+        slots outside the range are zeros, and are not stored.
         A failed save leaves the earlier checkpoints as they were and no files behind.
         """
         capacity = check_arrays(arrays)
@@ -174,10 +191,10 @@ class CheckpointStore:
         plan = self._plan(arrays, changed_slots, capacity)
         needed = len(state_bytes) + _MANIFEST_SLACK_BYTES
         needed += sum(
-            chunk_pieces(arrays[name], index, start, stop)[1]
+            chunk_pieces(arrays[name], index, chunk.start, chunk.start + chunk.slots)[1]
             for name, chunks in plan.items()
-            for index, (start, stop, reused) in enumerate(chunks)
-            if reused is None
+            for index, chunk in enumerate(chunks)
+            if chunk.slots and chunk.reused is None
         )
         created: list[Path] = []
         staging = self.directory / f"{_PARTIAL_PREFIX}step-{step:09d}"
@@ -194,12 +211,8 @@ class CheckpointStore:
                     shape=tuple(arrays[name].shape),
                     chunk_slots=chunk_slots_of(arrays[name], self.chunk_slots),
                     chunks=tuple(
-                        reused
-                        if reused is not None
-                        else self._write_chunk(
-                            arrays[name], name, index, start, stop, generation, created
-                        )
-                        for index, (start, stop, reused) in enumerate(chunks)
+                        self._store_chunk(arrays[name], name, index, chunk, generation, created)
+                        for index, chunk in enumerate(chunks)
                     ),
                 )
                 for name, chunks in plan.items()
@@ -248,52 +261,74 @@ class CheckpointStore:
             )
         return final
 
-    def _write_chunk(
+    def _store_chunk(
         self,
         array: np.ndarray | ChunkedArray,
         name: str,
         index: int,
-        start: int,
-        stop: int,
+        chunk: _PlannedChunk,
         generation: int,
         created: list[Path],
-    ) -> FileRecord:
-        encoding, _, pieces = chunk_pieces(array, index, start, stop)
+    ) -> FileRecord | None:
+        """The record of a planned chunk: none (zeros), the earlier file, or a new one."""
+        if not chunk.slots or chunk.reused is not None:
+            return chunk.reused if chunk.slots else None
+        encoding, _, pieces = chunk_pieces(array, index, chunk.start, chunk.start + chunk.slots)
         path = self.replay_directory / f"{name}.{index:05d}.g{generation:09d}.bin"
-        return write_file(path, pieces, created, encoding)
+        record = write_file(path, pieces, created, encoding)
+        if chunk.slots < chunk.stop - chunk.start:
+            record = replace(record, slots=chunk.slots)
+        return record
 
     def _plan(
         self, arrays: Arrays, changed_slots: tuple[int, int] | None, capacity: int
-    ) -> dict[str, list[tuple[int, int, FileRecord | None]]]:
-        """Per array, per chunk: its slot span and the earlier file to reuse, or None. A
-        file is reused when no slot of its chunk changed and it has the chunk's current
-        encoding (a chunk compressed since is written again, compressed)."""
-        plan: dict[str, list[tuple[int, int, FileRecord | None]]] = {}
+    ) -> dict[str, list[_PlannedChunk]]:
+        """Per array, per chunk: the slots to store and the earlier file to reuse.
+
+        Only slots that may hold something other than zeros are stored: those the earlier
+        checkpoint stored and those written since. A fresh store has no earlier checkpoint,
+        so its first save stores the slots written since the replay was made (zeros) and
+        leaves the rest out: a run's first checkpoint holds the filled part. A raw chunk is
+        cut after its last such slot; a `ChunkedArray`'s is stored whole (its zeros compress
+        to nearly nothing). A file is reused when no slot of its chunk changed and it has
+        the chunk's current encoding (a chunk compressed since is written again,
+        compressed)."""
+        plan: dict[str, list[_PlannedChunk]] = {}
         for name, array in arrays.items():
             chunk_slots = chunk_slots_of(array, self.chunk_slots)
-            changed = changed_chunks(changed_slots, capacity, chunk_slots)
+            extents = changed_extents(changed_slots, capacity, chunk_slots)
             base = self._base.arrays.get(name) if self._base is not None else None
-            if (
-                changed is None
-                or base is None
-                or (base.dtype, base.shape, base.chunk_slots)
-                != (array.dtype.str, tuple(array.shape), chunk_slots)
+            if base is not None and (base.dtype, base.shape, base.chunk_slots) != (
+                array.dtype.str,
+                tuple(array.shape),
+                chunk_slots,
             ):
                 base = None
-            chunks: list[tuple[int, int, FileRecord | None]] = []
+            # Every chunk whole: all slots changed, or the earlier checkpoint has no record
+            # of this array to tell which slots are zeros.
+            whole = extents is None or (self._base is not None and base is None)
+            chunks: list[_PlannedChunk] = []
             for index, start in enumerate(range(0, array.shape[0], chunk_slots)):
                 stop = min(start + chunk_slots, array.shape[0])
+                if whole or extents is None:
+                    chunks.append(_PlannedChunk(start, stop, stop - start, None))
+                    continue
+                stored = base.stored_slots(index) if base is not None else 0
+                slots = max(stored, extents.get(index, 0))
+                if slots and isinstance(array, ChunkedArray):
+                    slots = stop - start
                 reused = None
-                if base is not None and changed is not None and index not in changed:
-                    record = base.chunks[index]
+                record = base.chunks[index] if base is not None else None
+                if slots and record is not None and index not in extents:
                     encoding = chunk_pieces(array, index, start, stop)[0]
                     # Reuse only a file that is still there, whole: else write it again.
                     if (
                         record.encoding == encoding
+                        and stored == slots
                         and size_of(self.replay_directory / record.name) == record.size
                     ):
                         reused = record
-                chunks.append((start, stop, reused))
+                chunks.append(_PlannedChunk(start, stop, slots, reused))
             plan[name] = chunks
         return plan
 
@@ -353,6 +388,7 @@ class CheckpointStore:
             for _, _, manifest in complete[-self.keep :]
             for record in manifest.arrays.values()
             for chunk in record.chunks
+            if chunk is not None
         }
         for path in self.replay_directory.iterdir():
             if path.name not in referenced:

@@ -321,9 +321,14 @@ def replay_device(
 
 
 def check_disk(run_dir: Path, replay: ReplayMemory) -> None:
-    """Refuse at start when the disk cannot hold the checkpoints of this replay: at worst
-    two full copies (every chunk rewritten while the previous checkpoint is kept), of the
-    size the memory check counted on (compressed only where measured for this game)."""
+    """Refuse at start when the disk cannot hold the checkpoints this replay grows to: at
+    worst two full copies (every chunk rewritten while the previous checkpoint is kept), of
+    the size the memory check counted on (compressed only where measured for this game).
+
+    A checkpoint stores only the filled part of the replay, so the first ones are smaller;
+    this checks the full size all the same, so that a run that cannot finish is refused
+    now rather than days in. Each save checks the bytes it writes itself
+    (`CheckpointStore.save`)."""
     needed = 2 * replay.expected_bytes
     free = shutil.disk_usage(run_dir).free
     if needed > free:
