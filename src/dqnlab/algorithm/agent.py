@@ -18,6 +18,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from dqnlab.algorithm.encoders import torch_dtype
 from dqnlab.algorithm.heads import has_noise, sample_noise
 from dqnlab.algorithm.losses import Transitions, build_loss
 from dqnlab.algorithm.networks import build_q_network, recorded_network_name
@@ -108,7 +109,7 @@ class Agent:
         minibatch of zeros, before the run starts rather than at its first update."""
         if self.input_shape is None or self.observation_dtype is None:
             return
-        zeros = torch.zeros((2, *self.input_shape), dtype=_torch_dtype(self.observation_dtype))
+        zeros = torch.zeros((2, *self.input_shape), dtype=torch_dtype(self.observation_dtype))
         zeros = zeros.to(self.device)
         scalars = torch.zeros(2, device=self.device)
         batch = Transitions(
@@ -242,10 +243,6 @@ def _on_device(frames: np.ndarray | torch.Tensor, device: torch.device) -> torch
     """A batch's frames as a tensor on `device` (a no-op for frames already there)."""
     tensor = frames if isinstance(frames, torch.Tensor) else torch.from_numpy(frames)
     return tensor.to(device)
-
-
-def _torch_dtype(dtype: np.dtype) -> torch.dtype:
-    return torch.from_numpy(np.zeros(0, dtype=dtype)).dtype
 
 
 def is_image_observation(observation_shape: tuple[int, ...], dtype: np.dtype) -> bool:

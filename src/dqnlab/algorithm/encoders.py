@@ -28,20 +28,40 @@ SMALL_CNN_CHANNELS = 16  # MinAtar (Young & Tian 2019), section 4
 SMALL_CNN_HIDDEN_WIDTH = 128  # MinAtar: the fully connected layer after the convolution
 
 
-def torch_dtype(dtype: str) -> torch.dtype:
+def torch_dtype(dtype: np.dtype | str) -> torch.dtype:
+    """The torch dtype of a NumPy dtype."""
     return torch.from_numpy(np.zeros(0, dtype=dtype)).dtype
 
 
-def unpack(observations: torch.Tensor, layout: ObservationLayout) -> list[torch.Tensor]:
+def nature_convolutions(channels: int) -> nn.Sequential:
+    """The Nature CNN's three convolutions with ReLU, flattened (Mnih et al. 2015, Methods)."""
+    return nn.Sequential(
+        nn.Conv2d(channels, 32, kernel_size=8, stride=4),
+        nn.ReLU(),
+        nn.Conv2d(32, 64, kernel_size=4, stride=2),
+        nn.ReLU(),
+        nn.Conv2d(64, 64, kernel_size=3, stride=1),
+        nn.ReLU(),
+        nn.Flatten(),
+    )
+
+
+def unpack(
+    observations: torch.Tensor,
+    layout: ObservationLayout,
+    dtypes: list[torch.dtype] | None = None,
+) -> list[torch.Tensor]:
     """Each part of `observations` (batch, history, *frame_shape) as a tensor (batch,
-    history, *part.shape) of its stored dtype."""
+    history, *part.shape) of its stored dtype (`dtypes`: the parts' torch dtypes, when the
+    caller has them already)."""
     if not layout.packed:
         return [observations]
+    dtypes = dtypes or [torch_dtype(part.dtype) for part in layout.parts]
     leading = observations.shape[:-1]
     values = []
-    for part in layout.parts:
+    for part, dtype in zip(layout.parts, dtypes, strict=True):
         raw = observations[..., part.offset : part.offset + part.nbytes].contiguous()
-        values.append(raw.view(torch_dtype(part.dtype)).reshape(*leading, *part.shape))
+        values.append(raw.view(dtype).reshape(*leading, *part.shape))
     return values
 
 
@@ -62,24 +82,17 @@ class ImageEncoder(nn.Module):
         planes = history * channels
         small = is_small(part) if small is None else small
         if small:
-            layers: list[nn.Module] = [
+            self.convolutions = nn.Sequential(
                 nn.Conv2d(planes, SMALL_CNN_CHANNELS, kernel_size=3, stride=1),
                 nn.ReLU(),
-            ]
+                nn.Flatten(),
+            )
         else:
             if min(height, width) < NATURE_MIN_SIDE:
                 raise ValueError(
                     f"the Nature CNN needs images of at least 36x36 pixels, got {height}x{width}"
                 )
-            layers = [
-                nn.Conv2d(planes, 32, kernel_size=8, stride=4),
-                nn.ReLU(),
-                nn.Conv2d(32, 64, kernel_size=4, stride=2),
-                nn.ReLU(),
-                nn.Conv2d(64, 64, kernel_size=3, stride=1),
-                nn.ReLU(),
-            ]
-        self.convolutions = nn.Sequential(*layers, nn.Flatten())
+            self.convolutions = nature_convolutions(planes)
         with torch.no_grad():
             probe = torch.zeros(1, planes, height, width)
             self.output_size = int(self.convolutions(probe).shape[1])
@@ -150,9 +163,10 @@ class ObservationEncoder(nn.Module):
             else:
                 encoders.append(VectorEncoder(part, history))
         self.encoders = nn.ModuleList(encoders)
+        self.dtypes = [torch_dtype(part.dtype) for part in layout.parts]  # once, not per call
         self.output_size = sum(encoder.output_size for encoder in encoders)
 
     def forward(self, observations: torch.Tensor) -> torch.Tensor:
-        values = unpack(observations, self.layout)
+        values = unpack(observations, self.layout, self.dtypes)
         features = [encoder(value) for encoder, value in zip(self.encoders, values, strict=True)]
         return features[0] if len(features) == 1 else torch.cat(features, dim=1)

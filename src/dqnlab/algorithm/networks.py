@@ -33,7 +33,13 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from dqnlab.algorithm.encoders import SMALL_CNN_HIDDEN_WIDTH, ObservationEncoder, is_small
+from dqnlab.algorithm.encoders import (
+    NATURE_MIN_SIDE,
+    SMALL_CNN_HIDDEN_WIDTH,
+    ObservationEncoder,
+    is_small,
+    nature_convolutions,
+)
 from dqnlab.algorithm.heads import QHead
 from dqnlab.config import Config
 from dqnlab.envs.spaces import ObservationLayout
@@ -52,7 +58,7 @@ class NatureCNN(nn.Module):
     def __init__(self, input_shape: Sequence[int], num_actions: int) -> None:
         super().__init__()
         channels, height, width = _image_planes(input_shape)
-        self.features = _nature_convolutions(channels)
+        self.features = nature_convolutions(channels)
         flat = _flat_size(self.features, channels, height, width)
         self.head = nn.Sequential(
             nn.Linear(flat, NATURE_HIDDEN_WIDTH),
@@ -72,7 +78,7 @@ class NatureTorso(nn.Module):
     def __init__(self, input_shape: Sequence[int]) -> None:
         super().__init__()
         channels, height, width = _image_planes(input_shape)
-        self.features = _nature_convolutions(channels)
+        self.features = nature_convolutions(channels)
         self.output_size = _flat_size(self.features, channels, height, width)
         self.features.to(memory_format=torch.channels_last)  # as in NatureCNN
 
@@ -86,23 +92,11 @@ def _image_planes(input_shape: Sequence[int]) -> tuple[int, int, int]:
     history, *frame_shape = input_shape
     channels = history * (frame_shape[0] if len(frame_shape) == 3 else 1)
     height, width = frame_shape[-2:]
-    if min(height, width) < 36:
+    if min(height, width) < NATURE_MIN_SIDE:
         raise ConfigError(
             f"the Nature CNN needs images of at least 36x36 pixels, got {height}x{width}"
         )
     return channels, height, width
-
-
-def _nature_convolutions(channels: int) -> nn.Sequential:
-    return nn.Sequential(
-        nn.Conv2d(channels, 32, kernel_size=8, stride=4),
-        nn.ReLU(),
-        nn.Conv2d(32, 64, kernel_size=4, stride=2),
-        nn.ReLU(),
-        nn.Conv2d(64, 64, kernel_size=3, stride=1),
-        nn.ReLU(),
-        nn.Flatten(),
-    )
 
 
 def _flat_size(convolutions: nn.Module, channels: int, height: int, width: int) -> int:
