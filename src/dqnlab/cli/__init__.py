@@ -1,10 +1,11 @@
-"""The `dqnlab` command: train, evaluate, benchmark, ablate, sweep, status, report, inspect, list games and presets."""
+"""The `dqnlab` command: train, evaluate, benchmark, ablate, sweep, status, report, inspect,
+share agents (export, push, pull), list games and presets."""
 
 from __future__ import annotations
 
 import typer
 
-from dqnlab.cli import bench, listings, results, sweeps, train
+from dqnlab.cli import bench, hub, listings, results, sweeps, train
 from dqnlab.cli.common import run_command
 
 app = typer.Typer(
@@ -25,6 +26,9 @@ for command in (
     sweeps.status,
     results.report,
     results.inspect,
+    hub.export,
+    hub.push,
+    hub.pull,
     listings.games,
     listings.presets,
 ):

@@ -16,7 +16,7 @@ from dqnlab.algorithm.agent import Agent
 from dqnlab.config import Config
 from dqnlab.envs import is_atari, make_env
 from dqnlab.errors import DqnlabError
-from dqnlab.run import rundir
+from dqnlab.run import exported, rundir
 from dqnlab.run.lockstep import play_games
 from dqnlab.run.play import EvaluationResult
 
@@ -67,16 +67,32 @@ def load_evaluated_agent(
     of `seed`; child 1 seeds the agent)."""
     if checkpoint in ("best", "last"):
         rundir.load_run_config(run_dir)  # a clear error if RUN_DIR is not a run
-        path = rundir.network_path(run_dir, checkpoint)
+        path = _run_network_path(run_dir, checkpoint)
     else:
         path = Path(checkpoint)
-    payload = rundir.load_network(path, map_location=device)
+    if path.suffix == ".safetensors":
+        payload = exported.load_network(path, map_location=device)
+    else:
+        payload = rundir.load_network(path, map_location=device)
     agent, config, env_seed = rundir.agent_from_network(payload, path, seed, device)
     message = unbounded_games_warning(config)
     if message is not None:
         warnings.warn(message, stacklevel=2)
     step = payload.get("step")
     return EvaluatedNetwork(agent, config, path, int(step) if step is not None else None, env_seed)
+
+
+def _run_network_path(run_dir: Path, checkpoint: str) -> Path:
+    """The network `checkpoint` ("best" or "last") of a run directory, or the one network
+    of an exported folder (`exported`), which is the network it was exported with."""
+    if not exported.is_exported_dir(run_dir):
+        return rundir.network_path(run_dir, checkpoint)
+    if checkpoint != "best":
+        raise DqnlabError(
+            f"{run_dir} is an exported folder: its one network is {exported.MODEL_FILE} "
+            "(--checkpoint best, the default)"
+        )
+    return exported.network_path(run_dir)
 
 
 def unbounded_games_warning(config: Config) -> str | None:
