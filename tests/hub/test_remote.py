@@ -269,3 +269,32 @@ def test_an_evaluation_of_the_pulled_folder_needs_no_hub(
     results = json.loads((target / "results.json").read_text())
     played, _ = final_evaluation(target, "best", None, results["seed"], CPU)
     assert played.scores == results["scores"]
+
+
+def test_the_commands_print_what_they_did_and_one_line_when_refused(
+    tiny_run: Path, hub: FakeHubApi, tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch
+) -> None:
+    monkeypatch.setattr(remote, "default_api", lambda: hub)
+    out = tmp_path / "exported"
+    status, _ = dqnlab_main(
+        capsys, monkeypatch, "export", str(tiny_run), "--out", str(out), "--no-video",
+        "--device", "cpu", "--seed", str(EVALUATION_SEED),
+    )  # fmt: skip
+    assert status == 0
+    assert not (out / "replay.mp4").exists() and (out / "model.safetensors").is_file()
+    push = ["push", str(tiny_run), "--repo-id", REPO, "--no-video", "--device", "cpu"]
+    refusal = http_error(HfHubHTTPError, 403, "403 Forbidden: read-only token")
+    hub.failures["upload_folder"] = refusal
+    status, error = dqnlab_main(capsys, monkeypatch, *push, "--seed", str(EVALUATION_SEED))
+    assert status == 2 and len(error.splitlines()) == 1
+    assert error.startswith(f"dqnlab: error: cannot upload to {REPO}: the Hub answered 403")
+    del hub.failures["upload_folder"]
+    monkeypatch.setattr(sys, "argv", ["dqnlab", *push, "--seed", str(EVALUATION_SEED)])
+    with pytest.raises(SystemExit) as exit_info:
+        from dqnlab.cli import main
+
+        main()
+    assert exit_info.value.code in (0, None)
+    printed = capsys.readouterr().out
+    assert "pushed README.md, config.toml" in printed and printed.rstrip().endswith(COMMIT)
+    assert "CartPole-v1: " in printed and "over 3 games (results.json)" in printed
