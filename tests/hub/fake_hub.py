@@ -52,7 +52,13 @@ class FakeHubApi:
         self._call(
             "upload_folder", repo_id=repo_id, folder_path=folder_path, files=files, **options
         )
-        shutil.copytree(folder_path, self.repo(repo_id), dirs_exist_ok=True)
+        repo = self.repo(repo_id)
+        for path in [p for p in repo.rglob("*") if p.is_file()]:
+            name = path.relative_to(repo).as_posix()
+            deleted = any(fnmatch.fnmatch(name, p) for p in options.get("delete_patterns") or [])
+            if deleted and name not in files and name != ".gitattributes":
+                path.unlink()
+        shutil.copytree(folder_path, repo, dirs_exist_ok=True)
         return SimpleNamespace(commit_url=f"https://huggingface.co/{repo_id}/commit/{COMMIT}")
 
     def model_info(self, repo_id: str, **options: Any) -> Any:

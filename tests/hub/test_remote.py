@@ -76,6 +76,11 @@ def test_push_creates_the_repository_and_uploads_the_folder_as_one_commit(
     )
     assert commit.commit_url.endswith(COMMIT)
     assert not Path(upload["folder_path"]).exists()  # the temporary export is gone
+    # Pushed again: an earlier push's file this one lacks goes, the owner's own stay.
+    (hub.repo(REPO) / "replay.gif").write_bytes(b"GIF89a")
+    (hub.repo(REPO) / "notes.md").write_text("mine")
+    remote.push(tiny_run, REPO, api=hub, seed=EVALUATION_SEED, device=CPU, video=False)
+    assert {p.name for p in hub.repo(REPO).iterdir()} == {*folder.files, "notes.md"}
 
 
 def test_push_pull_evaluate_reproduces_the_runs_score(

@@ -2,7 +2,8 @@
 repository, through an `HfApi` (`api`, injected: tests give a fake one).
 
 Push exports into a temporary directory, then creates the repository if needed
-(`create_repo(exist_ok=True)`) and uploads the folder as one commit (`upload_folder`); the
+(`create_repo(exist_ok=True)`) and uploads the folder as one commit (`upload_folder`, which
+also deletes an earlier push's files that this one lacks); the
 token is huggingface_hub's own (`hf auth login`, or HF_TOKEN). Pull reads the file list
 first and refuses a repository holding pickles before downloading anything, downloads
 only an exported folder's files through huggingface_hub's cache (`snapshot_download`),
@@ -134,6 +135,9 @@ def push(
                 repo_type="model",
                 folder_path=str(folder.folder),
                 commit_message=message,
+                # An earlier push's files that this one lacks (a GIF where there is now an
+                # MP4, a video left out) go; the owner's other files stay.
+                delete_patterns=list(exported.FOLDER_FILES),
             )
     return folder, commit
 
