@@ -259,9 +259,9 @@ def test_push_without_a_token_stops_before_anything_else(
 def test_huggingface_hubs_own_token_lookup_reads_hf_token(monkeypatch) -> None:
     monkeypatch.setenv("HF_TOKEN", "hf_from_the_environment")
     assert remote.has_token(SimpleNamespace(token=None))
-    monkeypatch.delenv("HF_TOKEN")
-    monkeypatch.setenv("HF_HOME", "/nonexistent-hf-home")  # no stored login either
-    monkeypatch.setattr("huggingface_hub.constants.HF_TOKEN_PATH", "/nonexistent-hf-home/token")
+    for variable in ("HF_TOKEN", "HUGGING_FACE_HUB_TOKEN", "HF_OIDC_RESOURCE"):
+        monkeypatch.delenv(variable, raising=False)
+    monkeypatch.setattr("huggingface_hub.constants.HF_TOKEN_PATH", "/nonexistent/token")  # no login
     assert not remote.has_token(SimpleNamespace(token=None))
 
 
