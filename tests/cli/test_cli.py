@@ -12,7 +12,7 @@ from dqnlab.cli import app, main
 from tests.helpers import dqnlab
 
 COMMANDS = ["train", "resume", "evaluate", "bench", "ablate", "sweep", "status", "report",
-            "inspect", "games", "presets"]  # fmt: skip
+            "inspect", "export", "push", "pull", "games", "presets"]  # fmt: skip
 
 
 def test_the_app_and_entry_point_the_docs_and_pyproject_name() -> None:
@@ -36,6 +36,9 @@ def test_the_app_and_entry_point_the_docs_and_pyproject_name() -> None:
         "status",
         "report",
         "inspect",
+        "export",
+        "push",
+        "pull",
         "games",
     ],
 )

@@ -168,7 +168,8 @@ def card_text(facts: CardFacts) -> str:
         "```",
         "pip install 'dqnlab[hub]'",
         f"dqnlab pull {repo} --run-dir runs/{repo.split('/')[-1]}",
-        f"dqnlab evaluate runs/{repo.split('/')[-1]} --seed {facts.results['seed']}",
+        f"dqnlab evaluate runs/{repo.split('/')[-1]} --seed {facts.results['seed']} "
+        f"--episodes {facts.results['episodes']}",
         "```",
         "",
         "## Train it again",

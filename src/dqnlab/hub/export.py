@@ -174,8 +174,9 @@ def _learning_curve(run_dir: Path, path: Path) -> bool:
 
 
 def _film(folder: Path, seed: int, device: torch.device) -> str | None:
-    """replay.mp4 (or .gif): the first game of the final protocol, played by the exported
-    network itself; a note instead when the environment cannot be filmed."""
+    """replay.mp4 (or .gif): one game of the final protocol from `seed`, played on one
+    environment by the exported network itself; a note instead when the environment cannot
+    be filmed."""
     from dqnlab.analysis.video import filmed_final_evaluation
 
     films = folder / ".films"
