@@ -44,8 +44,8 @@ from dqnlab.errors import DqnlabError
 PEER_NAME = "cleanrl"
 SCRIPT = Path("cleanrl/dqn_atari.py")
 LOCK_FILE = Path("requirements/requirements-atari.txt")
-# ale-py's wheels ship the ROMs from 0.9 on; 0.9.1 is the last release before the pinned
-# gymnasium 0.29.1 gave way to gymnasium 1.0 in ale-py's own tests.
+# ale-py's wheels ship the ROMs from 0.9 on; 0.9.1 runs dqn_atari.py under the pinned
+# gymnasium 0.29.1 (checked by running it, 2026-12-03).
 ALE_PY_PIN = "ale-py==0.9.1"
 LOCK_LINES_DROPPED = ("ale-py", "autorom", "autorom-accept-rom-license")
 # What dqn_atari.py imports (tensorboard through torch.utils.tensorboard; cv2 and psutil
@@ -301,6 +301,7 @@ def run_cleanrl_dqn(
     arguments, first, last = cleanrl_arguments(config, steps, learning_starts, device)
     command = [str(peer.python), "-c", LAUNCHER, str(peer.checkout / SCRIPT), *arguments]
     threads = torch.get_num_threads()
+    load_at_start = os.getloadavg()[0]
     lines: list[tuple[float, str]] = []
     tail: deque[str] = deque(maxlen=20)
     start = time.perf_counter()
@@ -346,6 +347,7 @@ def run_cleanrl_dqn(
             "python": str(peer.python),
             "versions": versions,
             "threads": threads,  # OMP_NUM_THREADS and MKL_NUM_THREADS given to it
+            "load_average_1min_at_start": load_at_start,  # others' work on the machine
             "timed_window_steps": [first, last],
             # What dqn_atari.py has no argument for, as its source fixes it.
             "fixed_in_script": "Adam (eps 1e-8), MSE loss (mean), no gradient clipping, "
