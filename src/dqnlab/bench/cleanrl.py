@@ -7,7 +7,7 @@ DIR's `requirements/requirements-atari.txt` used as pip constraints, for what th
 `cleanrl_utils` import. One pin is changed: ale-py 0.8.1 needs ROMs that AutoROM downloads,
 while ale-py 0.9 ships them in its wheels and runs under the pinned gymnasium 0.29.1. ale-py
 0.9 registers its envs when imported, which gymnasium 0.29 does not do by itself (shimmy
-1.1.0's registration imports the `ale_py.roms.utils` of 0.8), so a two-line launcher imports
+1.1.0's registration imports the `ale_py.roms.utils` of 0.8), so a short launcher imports
 ale_py and then runs the script as `__main__`.
 
 Throughput: `dqn_atari.py` prints `SPS: n` before the update of every 100th agent step once
@@ -41,7 +41,6 @@ import torch
 from dqnlab.config import Config
 from dqnlab.errors import DqnlabError
 
-PEER_NAME = "cleanrl"
 SCRIPT = Path("cleanrl/dqn_atari.py")
 LOCK_FILE = Path("requirements/requirements-atari.txt")
 # ale-py's wheels ship the ROMs from 0.9 on; 0.9.1 runs dqn_atari.py under the pinned
@@ -105,6 +104,8 @@ def _echo_to_stderr(line: str) -> None:
 
 def _commit(checkout: Path) -> str:
     """The checkout's git commit, or "unknown" for a copy without git."""
+    if not (checkout / ".git").exists():  # not the commit of a repository around it
+        return "unknown"
     try:
         found = subprocess.run(
             ["git", "-C", str(checkout), "rev-parse", "HEAD"],
