@@ -143,12 +143,13 @@ def test_sps_lines_are_timed_into_frames_per_second() -> None:
         parse_sps_lines(lines, 5100, 5400, 4)
 
 
-def test_the_ratio_is_dqnlabs_mean_over_cleanrls_mean() -> None:
+def test_the_ratio_is_dqnlabs_mean_over_cleanrls_mean_and_each_rounds() -> None:
     runs = [{"cleanrl_train_frames_per_second": 300.0}, {"cleanrl_train_frames_per_second": 500.0}]
-    figures = cleanrl_figures(runs, 720.0)
+    figures = cleanrl_figures(runs, [600.0, 840.0])
     assert figures["cleanrl_train_frames_per_second"] == 400.0
     assert figures["cleanrl_train_frames_per_second_runs"] == [300.0, 500.0]
     assert figures["train_ratio_vs_cleanrl"] == pytest.approx(1.8)
+    assert figures["train_ratio_vs_cleanrl_runs"] == [2.0, 1.68]
 
 
 def test_the_lock_becomes_constraints_without_ale_py_08_autorom_or_the_checkout() -> None:
@@ -198,6 +199,13 @@ def test_the_bench_alternates_cleanrl_with_dqnlab_and_gives_the_ratio(
     assert len(figures["cleanrl_train_frames_per_second_runs"]) == 2
     ratio = figures["train_frames_per_second"] / figures["cleanrl_train_frames_per_second"]
     assert figures["train_ratio_vs_cleanrl"] == pytest.approx(ratio)
+    rounds = zip(
+        figures["train_frames_per_second_runs"],
+        figures["cleanrl_train_frames_per_second_runs"],
+        strict=True,
+    )  # both rounded to 0.1 frames/s
+    expected = [ours / theirs for ours, theirs in rounds]
+    assert figures["train_ratio_vs_cleanrl_runs"] == pytest.approx(expected, rel=0.02)
     assert _as_dict(figures["cleanrl_settings"]["arguments"])["--env-id"] == "PongNoFrameskip-v4"
     assert "peer_train_frames_per_second" not in figures  # no --peers: SB3 not run
 

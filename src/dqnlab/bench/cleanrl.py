@@ -358,12 +358,21 @@ def run_cleanrl_dqn(
     }
 
 
-def cleanrl_figures(runs: list[dict[str, Any]], train_frames_per_second: float) -> dict[str, Any]:
+def cleanrl_figures(
+    runs: list[dict[str, Any]], train_frames_per_second_runs: list[float]
+) -> dict[str, Any]:
     """The rounds' CleanRL figures for the bench's table: their mean, each round's, the
-    ratio of dqnlab's mean to it, and the last round's settings."""
+    ratio of dqnlab's mean to theirs and each round's ratio (other work on the machine
+    can slow one round of both alike), and the last round's settings."""
     frames_per_second = [run["cleanrl_train_frames_per_second"] for run in runs]
-    figures = {name: value for name, value in runs[-1].items()}
+    figures = dict(runs[-1])
     figures["cleanrl_train_frames_per_second"] = float(np.mean(frames_per_second))
     figures["cleanrl_train_frames_per_second_runs"] = [round(f, 1) for f in frames_per_second]
-    figures["train_ratio_vs_cleanrl"] = train_frames_per_second / float(np.mean(frames_per_second))
+    figures["train_ratio_vs_cleanrl"] = float(
+        np.mean(train_frames_per_second_runs) / np.mean(frames_per_second)
+    )
+    figures["train_ratio_vs_cleanrl_runs"] = [
+        float(f"{ours / theirs:.4g}")
+        for ours, theirs in zip(train_frames_per_second_runs, frames_per_second, strict=True)
+    ]
     return figures

@@ -160,7 +160,7 @@ def run_benchmark(
             figures["train_frames_per_second"] / figures["peer_train_frames_per_second"]
         )
     if cleanrl_runs:
-        figures.update(cleanrl_figures(cleanrl_runs, figures["train_frames_per_second"]))
+        figures.update(cleanrl_figures(cleanrl_runs, [run[0] for run in train_runs]))
 
     # Evaluation at epsilon 0.05, both for `steps` agent steps: the final protocol's games
     # on every core (as `dqnlab evaluate` plays them, cut when the steps are spent), and the
