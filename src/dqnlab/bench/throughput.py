@@ -10,6 +10,7 @@ evaluation's (`play_games`, every core) and the periodic one's (`play`, one envi
 from __future__ import annotations
 
 import time
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -17,6 +18,7 @@ import psutil
 import torch
 
 from dqnlab.algorithm.replay import ReplayMemory
+from dqnlab.bench.cleanrl import cleanrl_figures, prepare_cleanrl, run_cleanrl_dqn
 from dqnlab.bench.compression import measure_compression
 from dqnlab.bench.flops import (
     agent_network_flops,
@@ -57,13 +59,18 @@ def run_benchmark(
     compile_update: bool = False,
     compression_fill_steps: int = 0,
     compression_checkpoint_capacity: int = 0,
+    cleanrl_dir: Path | None = None,
+    cleanrl_venv: Path | None = None,
 ) -> dict[str, Any]:
     """All figures in one run. With `peers`, Stable-Baselines3's DQN is measured in
     `rounds` (default 2) alternating with dqnlab's training, with the same settings. With
     `compression_fill_steps`, the compressed replay's figures on that many transitions of
-    the game (`compression.measure_compression`)."""
+    the game (`compression.measure_compression`). With `cleanrl_dir`, CleanRL's DQN from
+    that checkout joins the rounds too (`cleanrl.run_cleanrl_dqn`)."""
     device = device or torch.device("cpu")
-    rounds = rounds or (2 if peers else 1)
+    rounds = rounds or (2 if peers or cleanrl_dir else 1)
+    # Its venv is checked, or made, before anything is timed.
+    cleanrl = prepare_cleanrl(cleanrl_dir, cleanrl_venv) if cleanrl_dir else None
     if peers and not peer_available():
         raise DqnlabError(
             "--peers needs Stable-Baselines3: pip install 'dqnlab[bench]' (or -e '.[bench]')"
@@ -121,7 +128,7 @@ def run_benchmark(
     training.steps = config.replay_start_steps + config.epsilon_decay_steps
     for _ in range(100):
         training.advance()
-    train_runs, peer_runs = [], []
+    train_runs, peer_runs, cleanrl_runs = [], [], []
     for _ in range(rounds):
         train_runs.append(measure_training(training, steps))
         if peers:
@@ -136,6 +143,10 @@ def run_benchmark(
                     epsilon_decay_steps=peer_learning_starts,
                 )  # fmt: skip
             )
+        if cleanrl is not None:
+            cleanrl_runs.append(
+                run_cleanrl_dqn(cleanrl, config, steps, peer_learning_starts, device)
+            )
     figures["train_frames_per_second"] = float(np.mean([run[0] for run in train_runs]))
     figures["train_frames_per_second_runs"] = [round(run[0], 1) for run in train_runs]
     for name, fraction in train_runs[-1][1].items():
@@ -148,6 +159,8 @@ def run_benchmark(
         figures["train_ratio_vs_peer"] = (
             figures["train_frames_per_second"] / figures["peer_train_frames_per_second"]
         )
+    if cleanrl_runs:
+        figures.update(cleanrl_figures(cleanrl_runs, [run[0] for run in train_runs]))
 
     # Evaluation at epsilon 0.05, both for `steps` agent steps: the final protocol's games
     # on every core (as `dqnlab evaluate` plays them, cut when the steps are spent), and the

@@ -9,6 +9,7 @@ from typing import Annotated
 import typer
 
 from dqnlab.cli.common import Device, resolve_device, write_json
+from dqnlab.errors import DqnlabError
 
 
 def bench(
@@ -30,6 +31,20 @@ def bench(
     peers: Annotated[
         bool, typer.Option(help="Also run Stable-Baselines3's DQN (dqnlab[bench]), alternating")
     ] = False,
+    cleanrl: Annotated[
+        Path | None,
+        typer.Option(
+            help="Also run CleanRL's dqn_atari.py from the CleanRL checkout in this folder, "
+            "alternating (with or without --peers), in a venv with CleanRL's pinned versions"
+        ),
+    ] = None,
+    cleanrl_venv: Annotated[
+        Path | None,
+        typer.Option(
+            help="The venv to run --cleanrl's script in (default: one made once under "
+            "~/.cache/dqnlab from the checkout's requirements/requirements-atari.txt)"
+        ),
+    ] = None,
     compile_update: Annotated[
         bool, typer.Option("--compile", help="Measure with the update compiled (compile_update)")
     ] = False,
@@ -126,6 +141,8 @@ def bench(
             resolve_device(device),
         )
     else:
+        if cleanrl_venv is not None and cleanrl is None:
+            raise DqnlabError("--cleanrl-venv is for --cleanrl DIR: give the CleanRL checkout")
         figures = run_benchmark(
             env,
             steps,
@@ -135,6 +152,8 @@ def bench(
             compile_update=compile_update,
             compression_fill_steps=compression_fill_steps,
             compression_checkpoint_capacity=compression_checkpoint_capacity,
+            cleanrl_dir=cleanrl,
+            cleanrl_venv=cleanrl_venv,
         )
     for name, value in figures.items():
         typer.echo(f"{name:40s} {value:.4g}" if isinstance(value, float) else f"{name:40s} {value}")
