@@ -62,6 +62,14 @@ class DeepMindRMSprop(torch.optim.Optimizer):
         super().__init__(params, defaults)
         self.foreach = foreach
 
+    def __getstate__(self) -> dict[str, Any]:
+        # The base class copies and pickles only its own attributes.
+        return {**super().__getstate__(), "foreach": self.foreach}
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        self.foreach = state.pop("foreach", None)
+        super().__setstate__(state)
+
     def add_param_group(self, param_group: dict[str, Any]) -> None:
         # Per-group overrides bypass __init__, so they are checked here as well.
         super().add_param_group(param_group)

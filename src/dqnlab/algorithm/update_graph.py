@@ -29,35 +29,43 @@ class HostToDevice:
     sent in one copy that does not block, into a device buffer that stays in place (the
     same addresses every update, as a CUDA graph needs); the host buffers are used in turn
     and one is refilled only after its last copy has run. On another device the tensors
-    share the arrays' memory (`torch.from_numpy`), as before this class."""
+    share the arrays' memory (`torch.from_numpy`), as before this class, unless `packed`
+    (the CUDA path's packing, without page-locking or events: what a CPU test can run)."""
 
-    def __init__(self, device: torch.device, slots: int = STAGING_SLOTS) -> None:
+    def __init__(
+        self, device: torch.device, slots: int = STAGING_SLOTS, packed: bool | None = None
+    ) -> None:
         self.device = device
         self.slots = slots
+        self.cuda = device.type == "cuda"
+        self.packed = self.cuda if packed is None else packed
         self._layout: tuple[tuple[np.dtype, tuple[int, ...]] | None, ...] = ()
         self._host: list[torch.Tensor] = []
-        self._events: list[torch.cuda.Event] = []
+        self._events: list[torch.cuda.Event | None] = []
         self._device_buffer: torch.Tensor | None = None
         self._views: Tensors = ()
         self._offsets: list[int] = []
         self._next = 0
 
     def upload(self, arrays: Arrays) -> Tensors:
-        if self.device.type != "cuda":
+        if not self.packed:
             return tuple(None if a is None else torch.from_numpy(a).to(self.device) for a in arrays)
         layout = tuple(None if a is None else (a.dtype, a.shape) for a in arrays)
         if layout != self._layout:
             self._allocate(layout)
         slot = self._next
         self._next = (slot + 1) % self.slots
-        self._events[slot].synchronize()  # its previous copy has run: free to refill
+        event = self._events[slot]
+        if event is not None:
+            event.synchronize()  # its previous copy has run: free to refill
         host = self._host[slot].numpy()
         for offset, array in zip(self._offsets, arrays, strict=True):
             if array is not None:
                 host[offset : offset + array.nbytes] = array.reshape(-1).view(np.uint8)
         assert self._device_buffer is not None
-        self._device_buffer.copy_(self._host[slot], non_blocking=True)
-        self._events[slot].record()
+        self._device_buffer.copy_(self._host[slot], non_blocking=self.cuda)
+        if event is not None:
+            event.record()
         return self._views
 
     def owns(self, tensor: torch.Tensor) -> bool:
@@ -74,11 +82,12 @@ class HostToDevice:
                 size += -(-int(np.prod(shape)) * dtype.itemsize // ALIGNMENT) * ALIGNMENT
         self._layout, self._offsets = layout, offsets
         self._host = [
-            torch.empty(size, dtype=torch.uint8, pin_memory=True) for _ in range(self.slots)
+            torch.empty(size, dtype=torch.uint8, pin_memory=self.cuda) for _ in range(self.slots)
         ]
-        self._events = [torch.cuda.Event() for _ in range(self.slots)]
+        self._events = [torch.cuda.Event() if self.cuda else None for _ in range(self.slots)]
         for event in self._events:
-            event.record()
+            if event is not None:
+                event.record()
         buffer = torch.empty(size, dtype=torch.uint8, device=self.device)
         self._device_buffer = buffer
         views: list[torch.Tensor | None] = []

@@ -125,15 +125,14 @@ def gpu_machine(device: torch.device) -> dict[str, Any]:
 
 
 def nature_config(env: str, seed: int, capacity: int, update_graph: str, **extra: Any) -> Config:
+    settings: dict[str, Any] = {"replay_storage": "device", "heldout_transitions": 0, **extra}
     return resolve_config(
         "nature",
         env=env,
         seed=seed,
         replay_capacity=capacity,
-        replay_storage="device",
         update_graph=update_graph,
-        heldout_transitions=0,
-        **extra,
+        **settings,
     )
 
 
