@@ -6,7 +6,7 @@ GAME ?= pong
 ARGS ?=
 
 .PHONY: install install-test train test test-slow lint format typecheck clean
-.PHONY: install-docs docs docs-serve
+.PHONY: install-docs docs docs-serve bench-gpu
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -58,6 +58,11 @@ docs: install-docs
 # The site served on this machine only, rebuilt as docs/ changes.
 docs-serve: install-docs
 	$(BIN)/mkdocs serve -a 127.0.0.1:8000
+
+# The GPU path's figures into bench-gpu.json (under 8 minutes on one H100/H200; see
+# docs/benchmark.md). ARGS="--device cpu --quick" runs it on CPU in seconds.
+bench-gpu: install
+	$(BIN)/python -m dqnlab.bench.gpu --json bench-gpu.json $(ARGS)
 
 clean:
 	rm -rf $(VENV) build dist src/*.egg-info .pytest_cache .ruff_cache .mypy_cache

@@ -284,3 +284,43 @@ def test_accepts_zero_decay() -> None:
     optimizer = DeepMindRMSprop([param], lr=LR, decay=0.0, eps=EPS)
     _step_with_gradient(optimizer, param, 2.0)
     assert param.item() == pytest.approx(1.0 - 0.00025 * 2.0 / math.sqrt(0.01), rel=1e-12)
+
+
+def _nature_like_parameters(seed: int) -> list[torch.nn.Parameter]:
+    generator = torch.Generator().manual_seed(seed)
+    shapes = [(32, 4, 8, 8), (32,), (64, 32, 4, 4), (64,), (512, 3136), (512,), (6, 512), (6,)]
+    return [torch.nn.Parameter(torch.randn(shape, generator=generator) * 0.1) for shape in shapes]
+
+
+def test_the_foreach_step_gives_the_per_parameter_steps_bits() -> None:
+    """Each operation on all tensors at once (torch._foreach_*) is the same arithmetic per
+    element, so the same bits on CPU, after steps whose gradients vary (one parameter
+    without a gradient, skipped by both)."""
+    runs = []
+    for foreach in (True, False):
+        params = _nature_like_parameters(0)
+        optimizer = DeepMindRMSprop(params, foreach=foreach)
+        generator = torch.Generator().manual_seed(1)
+        for _ in range(5):
+            for p in params[:-1]:
+                p.grad = torch.randn(p.shape, generator=generator)
+            optimizer.step()
+        runs.append((params, optimizer.state_dict()))
+    (foreach_params, foreach_state), (loop_params, loop_state) = runs
+    for a, b in zip(foreach_params, loop_params, strict=True):
+        assert torch.equal(a, b)
+    assert foreach_state["state"].keys() == loop_state["state"].keys()
+    for key, values in foreach_state["state"].items():
+        for name, value in values.items():
+            assert torch.equal(value, loop_state["state"][key][name])
+
+
+def test_foreach_is_chosen_for_cuda_parameters_and_kept_by_copies() -> None:
+    params = _nature_like_parameters(0)
+    optimizer = DeepMindRMSprop(params)
+    assert optimizer.foreach is None  # per parameter on CPU (no faster there), foreach on CUDA
+    assert copy.deepcopy(DeepMindRMSprop(params, foreach=False)).foreach is False
+    saved = io.BytesIO()
+    torch.save(DeepMindRMSprop(params, foreach=True), saved)
+    saved.seek(0)
+    assert torch.load(saved, weights_only=False).foreach is True

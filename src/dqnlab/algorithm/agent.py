@@ -25,6 +25,7 @@ from dqnlab.algorithm.networks import build_q_network, recorded_network_name
 from dqnlab.algorithm.optim import build_optimizer
 from dqnlab.algorithm.policies import build_policy
 from dqnlab.algorithm.replay import Batch
+from dqnlab.algorithm.update_graph import CapturedUpdate, HostToDevice
 from dqnlab.config import Config
 from dqnlab.envs import Environment
 from dqnlab.envs.spaces import ObservationLayout
@@ -56,6 +57,7 @@ class Agent:
         seed: int,
         compile_update: bool = False,
         *,
+        update_graph: str = "off",
         input_shape: tuple[int, ...] | None = None,
         observation_dtype: np.dtype | None = None,
         action_names: Sequence[str] | None = None,
@@ -68,7 +70,14 @@ class Agent:
         `compile_update` (opt-in): compile the loss with its backward pass and the
         optimizer step with `torch.compile`. The same arithmetic, fused into fewer passes
         over memory, so results agree up to float rounding; the first update then takes
-        tens of seconds to compile and needs a C++ compiler (on CPU)."""
+        tens of seconds to compile and needs a C++ compiler (on CPU).
+
+        `update_graph` = "cuda" (opt-in, a CUDA device): the update captured as a CUDA
+        graph after a few eager ones and replayed (`update_graph.CapturedUpdate`)."""
+        if update_graph == "cuda" and device.type != "cuda":
+            raise ConfigError(
+                f'update_graph = "cuda" needs a CUDA device; the training device is {device}'
+            )
         self.config = config
         self.device = device
         self.num_actions = num_actions
@@ -81,6 +90,7 @@ class Agent:
             rmsprop_decay=config.rmsprop_decay,
             rmsprop_epsilon=config.rmsprop_epsilon,
             adam_epsilon=config.adam_epsilon,
+            capturable=update_graph == "cuda",
         )
         self.loss = build_loss(config)
         self.policy = build_policy(config, num_actions)
@@ -103,6 +113,12 @@ class Agent:
         if compile_update:
             self._loss_and_backward = torch.compile(self._loss_and_backward)  # type: ignore[method-assign]
             self._optimizer_step = torch.compile(self.optimizer.step)
+        self._staging = HostToDevice(device)
+        self._graph = (
+            CapturedUpdate(self._update_step, self._staging.owns)
+            if update_graph == "cuda"
+            else None
+        )
 
     def _check_priorities(self) -> None:
         """A user's loss part must give priorities for prioritized replay: ask it once, on a
@@ -158,38 +174,60 @@ class Agent:
 
     def update(self, batch: Batch) -> tuple[torch.Tensor, torch.Tensor | None]:
         """One gradient step on a sampled minibatch; returns the loss and the priorities
-        the loss part gives (for prioritized replay), neither synchronised."""
+        the loss part gives (for prioritized replay), neither synchronised (with
+        update_graph, the graph's own tensors: read them before the next update)."""
         device = self.device
         self.online.train()
-        # Zeroed in place, not set to None: fresh gradients every update made the C
-        # allocator return memory and fault it back in, which cost more than the two
-        # passes over the gradients that set_to_none=True saves.
-        self.optimizer.zero_grad(set_to_none=False)
         if batch.window is not None:  # the shared frames cross to the device once
-            window = _on_device(batch.window, device)
-            history = window.shape[1] - 1
-            observations, next_observations = window[:, :history], window[:, 1:]
+            frames, next_frames = _on_device(batch.window, device), None
         else:
-            observations = _on_device(batch.observations, device)
-            next_observations = _on_device(batch.next_observations, device)
+            frames = _on_device(batch.observations, device)
+            next_frames = _on_device(batch.next_observations, device)
+        # One copy that does not wait for the device (on a GPU), into buffers that stay put.
+        actions, rewards, terminals, discounts, weights = self._staging.upload(
+            (batch.actions, batch.rewards, batch.terminals, batch.discounts, batch.weights)
+        )
+        assert actions is not None and rewards is not None and terminals is not None
         if self.noisy:  # fresh noise for each network (Fortunato et al. 2018, Algorithm 1)
+            # Drawn in place into the layers' buffers, outside a graph: each update's own.
             self.target.train()
             sample_noise(self.online, self.noise_generator)
             sample_noise(self.target, self.noise_generator)
-        discounts, weights = batch.discounts, batch.weights
+        step = self._update_step if self._graph is None else self._graph
+        loss, priorities = step(
+            frames, next_frames, actions, rewards, terminals, discounts, weights
+        )
+        self.updates += 1
+        return loss, priorities
+
+    def _update_step(
+        self,
+        frames: torch.Tensor,
+        next_frames: torch.Tensor | None,
+        actions: torch.Tensor,
+        rewards: torch.Tensor,
+        terminals: torch.Tensor,
+        discounts: torch.Tensor | None,
+        weights: torch.Tensor | None,
+    ) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """The update on device tensors, all of it on the device (what a graph captures).
+        `next_frames` None: `frames` is the window of history + 1 frames of both states."""
+        if next_frames is None:
+            history = frames.shape[1] - 1
+            observations, next_observations = frames[:, :history], frames[:, 1:]
+        else:
+            observations, next_observations = frames, next_frames
+        # Zeroed in place, not set to None: fresh gradients every update made the C
+        # allocator return memory and fault it back in, which cost more than the two
+        # passes over the gradients that set_to_none=True saves (and a graph needs them
+        # to stay where they are).
+        self.optimizer.zero_grad(set_to_none=False)
         loss, priorities = self._loss_and_backward(
-            observations,
-            torch.from_numpy(batch.actions).to(device),
-            torch.from_numpy(batch.rewards).to(device),
-            torch.from_numpy(batch.terminals).to(device),
-            None if discounts is None else torch.from_numpy(discounts).to(device),
-            next_observations,
-            None if weights is None else torch.from_numpy(weights).to(device),
+            observations, actions, rewards, terminals, discounts, next_observations, weights
         )
         if self.config.max_gradient_norm > 0:
             nn.utils.clip_grad_norm_(self.online.parameters(), self.config.max_gradient_norm)
         self._optimizer_step()
-        self.updates += 1
         return loss, priorities
 
     def _loss_and_backward(
@@ -232,7 +270,9 @@ class Agent:
     def load_state_dict(self, state: dict[str, Any]) -> None:
         self.online.load_state_dict(state["online"])
         self.target.load_state_dict(state["target"])
-        self.optimizer.load_state_dict(state["optimizer"])
+        self.optimizer.load_state_dict(state["optimizer"])  # new state tensors:
+        if self._graph is not None:  # a graph of the old ones would update those
+            self._graph.reset()
         self.rng.bit_generator.state = state["rng"]
         if "noise_rng" in state:  # checkpoints from before the family have none
             self.noise_generator.set_state(state["noise_rng"].cpu())
@@ -289,6 +329,7 @@ def agent_for_input(
         device,
         seed,
         config.compile_update,
+        update_graph=config.update_graph,
         input_shape=input_shape,
         observation_dtype=observation_dtype,
         action_names=action_names,

@@ -111,7 +111,7 @@ class OneHotEncoder(nn.Module):
     categories, entries and history concatenated."""
 
     offsets: torch.Tensor
-    keep: torch.Tensor
+    kept_columns: torch.Tensor
 
     def __init__(self, part: Part, history: int) -> None:
         super().__init__()
@@ -122,12 +122,13 @@ class OneHotEncoder(nn.Module):
         self.output_size = history * int(categories.sum())
         keep = torch.ones(self.width, dtype=torch.bool)
         keep[offsets] = False  # the "no observation" columns
-        self.register_buffer("keep", keep, persistent=False)
+        # As indices, not a mask: indexing by a mask waits for the device to count it.
+        self.register_buffer("kept_columns", keep.nonzero().flatten(), persistent=False)
 
     def forward(self, values: torch.Tensor) -> torch.Tensor:
         indices = values.reshape(*values.shape[:2], -1).long() + self.offsets
         one_hot = F.one_hot(indices, self.width).sum(dim=2)  # (batch, history, width)
-        return one_hot[..., self.keep].flatten(1).float()
+        return one_hot.index_select(-1, self.kept_columns).flatten(1).float()
 
 
 class VectorEncoder(nn.Module):

@@ -93,6 +93,13 @@ class MinibatchBuffers:
         self._frames = frames
         self._slots = np.zeros(batch_size * width, dtype=np.int64)
         self._mask = np.ones(batch_size * width, dtype=np.bool_)
+        # On a GPU the slots and the mask cross page-locked, in copies that do not wait
+        # for the device; the host rewrites them only once the last copy has run.
+        self._copied: torch.cuda.Event | None = None
+        if device is not None and device.type == "cuda":
+            self._slots = torch.from_numpy(self._slots).pin_memory().numpy()
+            self._mask = torch.from_numpy(self._mask).pin_memory().numpy()
+            self._copied = torch.cuda.Event()
         if device is not None:
             torch_dtype = torch.from_numpy(frames[:0]).dtype
             self._device_frames = torch.zeros(frames.shape, dtype=torch_dtype, device=device)
@@ -161,6 +168,8 @@ class MinibatchBuffers:
         then on) into `layout`, zeros where a history reaches back across an episode's
         start (or, before the ring is full, before slot 0)."""
         history = self.history_length
+        if self._copied is not None:
+            self._copied.synchronize()  # the previous minibatch's slots and mask were sent
         slots = layout.slots
         np.remainder(raw_slots, len(is_last), out=slots)
         # A frame of a history is kept only if no episode ended between it and the
@@ -184,9 +193,13 @@ class MinibatchBuffers:
         else:
             assert isinstance(source, torch.Tensor) and layout.device_frames is not None
             assert layout.device_slots is not None and layout.device_mask is not None
-            layout.device_slots.copy_(layout.slots_torch)
+            pinned = self._copied is not None
+            layout.device_slots.copy_(layout.slots_torch, non_blocking=pinned)
             frames = layout.device_frames.view(-1, *self.frame_shape)
             torch.index_select(source, 0, layout.device_slots, out=frames)
             if not mask.all():
-                layout.device_mask.view(mask.shape).copy_(torch.from_numpy(mask))
+                device_mask = layout.device_mask.view(mask.shape)
+                device_mask.copy_(torch.from_numpy(mask), non_blocking=pinned)
                 layout.device_frames.mul_(layout.device_mask)
+            if self._copied is not None:
+                self._copied.record()

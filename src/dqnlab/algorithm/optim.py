@@ -49,10 +49,26 @@ class DeepMindRMSprop(torch.optim.Optimizer):
         lr: float = 0.00025,
         decay: float = 0.95,
         eps: float = 0.01,
+        foreach: bool | None = None,
     ) -> None:
+        """`foreach`: each operation on all tensors at once (`torch._foreach_*`): one call
+        per operation rather than per parameter. On CPU these are the same kernels in a
+        loop, so the same bits, and no faster (the step is bound by its passes over
+        memory); on a GPU, multi-tensor kernels: a tenth of the launches. False: the
+        per-parameter loop, as the Lua code reads. None: foreach for parameters on a CUDA
+        device, as PyTorch's own optimizers choose."""
         _check_hyperparameters(lr=lr, decay=decay, eps=eps)
         defaults = {"lr": lr, "decay": decay, "eps": eps}
         super().__init__(params, defaults)
+        self.foreach = foreach
+
+    def __getstate__(self) -> dict[str, Any]:
+        # The base class copies and pickles only its own attributes.
+        return {**super().__getstate__(), "foreach": self.foreach}
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        self.foreach = state.pop("foreach", None)
+        super().__setstate__(state)
 
     def add_param_group(self, param_group: dict[str, Any]) -> None:
         # Per-group overrides bypass __init__, so they are checked here as well.
@@ -70,40 +86,80 @@ class DeepMindRMSprop(torch.optim.Optimizer):
             with torch.enable_grad():
                 loss = closure()
 
-        # A plain per-parameter loop: torch._foreach_* ops were no faster on CPU for the
-        # Nature network's ten tensors, and this reads like the Lua code. Its eight
-        # passes over memory are what costs; torch.compile fuses them into one:
-        # Agent(compile_update=True).
         for group in self.param_groups:
-            lr: float = group["lr"]
-            decay: float = group["decay"]
-            eps: float = group["eps"]
-            for param in group["params"]:
-                grad = param.grad
-                if grad is None:
-                    continue
-                if grad.is_sparse:
-                    raise RuntimeError("DeepMindRMSprop does not support sparse gradients")
-
-                state = self.state[param]
-                if len(state) == 0:
-                    # Zero start, as the Lua code's g and g2 (no bias correction later).
-                    state["grad_avg"] = torch.zeros_like(param, memory_format=torch.preserve_format)
-                    state["square_avg"] = torch.zeros_like(
-                        param, memory_format=torch.preserve_format
-                    )
-                grad_avg: torch.Tensor = state["grad_avg"]
-                square_avg: torch.Tensor = state["square_avg"]
-
-                # Same operation order as the Lua code: g:mul(0.95):add(0.05, dw).
-                grad_avg.mul_(decay).add_(grad, alpha=1.0 - decay)
-                square_avg.mul_(decay).addcmul_(grad, grad, value=1.0 - decay)
-                # The one temporary per parameter: sqrt(g2 - g² + eps), eps inside.
-                denominator = torch.addcmul(square_avg, grad_avg, grad_avg, value=-1.0)
-                denominator.add_(eps).sqrt_()
-                param.addcdiv_(grad, denominator, value=-lr)
-
+            params, grads, grad_avgs, square_avgs = self._group_tensors(group)
+            if not params:
+                continue
+            foreach = self.foreach
+            if foreach is None:
+                foreach = all(param.is_cuda for param in params)
+            step = _step_foreach if foreach else _step_per_parameter
+            step(params, grads, grad_avgs, square_avgs, group["lr"], group["decay"], group["eps"])
         return loss
+
+    def _group_tensors(
+        self, group: dict[str, Any]
+    ) -> tuple[list[torch.Tensor], list[torch.Tensor], list[torch.Tensor], list[torch.Tensor]]:
+        """The parameters of `group` that have a gradient, their gradients and their running
+        averages (created at zero on first use, as the Lua code's g and g2)."""
+        params, grads, grad_avgs, square_avgs = [], [], [], []
+        for param in group["params"]:
+            grad = param.grad
+            if grad is None:
+                continue
+            if grad.is_sparse:
+                raise RuntimeError("DeepMindRMSprop does not support sparse gradients")
+            state = self.state[param]
+            if len(state) == 0:  # zero start, no bias correction later
+                state["grad_avg"] = torch.zeros_like(param, memory_format=torch.preserve_format)
+                state["square_avg"] = torch.zeros_like(param, memory_format=torch.preserve_format)
+            params.append(param)
+            grads.append(grad)
+            grad_avgs.append(state["grad_avg"])
+            square_avgs.append(state["square_avg"])
+        return params, grads, grad_avgs, square_avgs
+
+
+def _step_per_parameter(
+    params: list[torch.Tensor],
+    grads: list[torch.Tensor],
+    grad_avgs: list[torch.Tensor],
+    square_avgs: list[torch.Tensor],
+    lr: float,
+    decay: float,
+    eps: float,
+) -> None:
+    for param, grad, grad_avg, square_avg in zip(
+        params, grads, grad_avgs, square_avgs, strict=True
+    ):
+        # Same operation order as the Lua code: g:mul(0.95):add(0.05, dw).
+        grad_avg.mul_(decay).add_(grad, alpha=1.0 - decay)
+        square_avg.mul_(decay).addcmul_(grad, grad, value=1.0 - decay)
+        # The one temporary per parameter: sqrt(g2 - g² + eps), eps inside.
+        denominator = torch.addcmul(square_avg, grad_avg, grad_avg, value=-1.0)
+        denominator.add_(eps).sqrt_()
+        param.addcdiv_(grad, denominator, value=-lr)
+
+
+def _step_foreach(
+    params: list[torch.Tensor],
+    grads: list[torch.Tensor],
+    grad_avgs: list[torch.Tensor],
+    square_avgs: list[torch.Tensor],
+    lr: float,
+    decay: float,
+    eps: float,
+) -> None:
+    # The operations of `_step_per_parameter`, in its order, each on every tensor: every
+    # element sees the same arithmetic, so the results are the same bits.
+    torch._foreach_mul_(grad_avgs, decay)
+    torch._foreach_add_(grad_avgs, grads, alpha=1.0 - decay)
+    torch._foreach_mul_(square_avgs, decay)
+    torch._foreach_addcmul_(square_avgs, grads, grads, value=1.0 - decay)
+    denominators = torch._foreach_addcmul(square_avgs, grad_avgs, grad_avgs, value=-1.0)
+    torch._foreach_add_(denominators, eps)
+    torch._foreach_sqrt_(denominators)
+    torch._foreach_addcdiv_(params, grads, denominators, value=-lr)
 
 
 def _check_hyperparameters(lr: float, decay: float, eps: float) -> None:
@@ -122,6 +178,7 @@ def build_optimizer(
     rmsprop_decay: float,
     rmsprop_epsilon: float,
     adam_epsilon: float,
+    capturable: bool = False,
 ) -> torch.optim.Optimizer:
     """Build the optimizer called `name`, one of `OPTIMIZER_NAMES`.
 
@@ -130,6 +187,9 @@ def build_optimizer(
       used (with lr 0.00005) because Caffe lacked DeepMind's variant; eps is added
       outside the square root, as PyTorch does.
     - ``"adam"``: Adam with `adam_epsilon`; the other hyper-parameters are PyTorch's.
+
+    `capturable`: PyTorch's optimizers keep their step counts on the device, as a CUDA
+    graph of the update needs (`update_graph`); `DeepMindRMSprop` has no step count.
     """
     if name == "deepmind_rmsprop":
         return DeepMindRMSprop(params, lr=learning_rate, decay=rmsprop_decay, eps=rmsprop_epsilon)
@@ -141,8 +201,11 @@ def build_optimizer(
             eps=rmsprop_epsilon,
             centered=False,
             momentum=0,
+            capturable=capturable,
         )
     if name == "adam":
-        return torch.optim.Adam(params, lr=learning_rate, eps=adam_epsilon, fused=True)
+        return torch.optim.Adam(
+            params, lr=learning_rate, eps=adam_epsilon, fused=True, capturable=capturable
+        )
     accepted = ", ".join(sorted(OPTIMIZER_NAMES))
     raise ValueError(f"unknown optimizer {name!r}; accepted: {accepted}")

@@ -97,6 +97,16 @@ def bench(
             "checkpoint after 25,000 steps of random play, raw and lz4",
         ),
     ] = False,
+    gpu: Annotated[
+        bool,
+        typer.Option(
+            "--gpu",
+            help="Instead of the rest: the GPU path's figures (update ms with and without "
+            "update_graph, frames/s, the CPU's update matched), to --json (default "
+            "bench-gpu.json); --quick for a tiny budget",
+        ),
+    ] = False,
+    quick: Annotated[bool, typer.Option("--quick", help="--gpu with a tiny budget")] = False,
     sweep_runs: Annotated[
         int, typer.Option(help="Tiny CartPole runs trained each way in each --sweep repeat")
     ] = 4,
@@ -109,6 +119,13 @@ def bench(
     a sweep's runs, and how soon a lost node's run trains again)."""
     from dqnlab.bench.throughput import run_benchmark
 
+    if gpu:
+        from dqnlab.bench.gpu import write_gpu_benchmark
+
+        write_gpu_benchmark(
+            json_path or Path("bench-gpu.json"), str(resolve_device(device)), quick, env
+        )
+        return
     if compression_scan is not None:
         from dqnlab.bench.compression import write_scan
 

@@ -187,6 +187,12 @@ class Config:
     compile_update: bool = _setting(
         False, "torch.compile the update (needs a C++ compiler; compiles once, at the first update)"
     )
+    update_graph: str = _setting(
+        "off",
+        "off, or cuda: the update (forward, backward, optimizer step) captured once as a CUDA "
+        "graph and replayed, one launch per update instead of dozens (a CUDA device only; "
+        "not with compile_update)",
+    )
     replay_storage: str = _setting(
         "auto",
         "host: minibatches gathered in host memory and copied to the device; device: the "
@@ -240,6 +246,7 @@ CHOICES: dict[str, tuple[str, ...]] = {
     "on_checkpoint_error": ("stop", "continue"),
     "eval_networks_kept": ("all", "best_and_worst"),
     "replay_storage": ("auto", "host", "device"),
+    "update_graph": ("off", "cuda"),
     "replay_compression": ("none", "lz4"),
     "logger": ("tensorboard", "tensorboard+wandb"),
     "target": ("max", "double"),
@@ -296,6 +303,11 @@ def _validate(config: Config) -> None:
     if config.batch_size > config.replay_capacity:
         raise ConfigError(
             f"batch_size = {config.batch_size} exceeds replay_capacity = {config.replay_capacity}"
+        )
+    if config.update_graph != "off" and config.compile_update:
+        raise ConfigError(
+            f"update_graph = {config.update_graph!r} captures the update itself: leave "
+            "compile_update = false"
         )
     _validate_parts(config)
     _validate_env_arguments(config)
@@ -356,7 +368,7 @@ RESUMABLE_CHANGES = (
     "logger", "wandb_project",
     "total_steps", "compile_update", "checkpoint_period_minutes", "checkpoint_period_steps",
     "checkpoints_kept", "on_checkpoint_error", "eval_networks_kept", "replay_storage",
-    "replay_compression", "heldout_transitions",
+    "replay_compression", "heldout_transitions", "update_graph",
 )  # fmt: skip
 
 
@@ -368,6 +380,7 @@ ADDED_WITH_DEFAULTS = (
     "distributional_v_max", "loss", "dueling", "noisy", "noisy_sigma0", "torso",
     "replay_sampling", "priority_exponent", "priority_epsilon", "importance_exponent_start",
     "max_gradient_norm", "policy", "env_kwargs", "env_wrappers", "observation_images",
+    "update_graph",
 )  # fmt: skip
 
 

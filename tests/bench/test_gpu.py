@@ -1,0 +1,53 @@
+"""The GPU benchmark script runs end to end on CPU with a tiny budget, and its figures say
+which were skipped for want of CUDA (not their speed)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import torch
+from typer.testing import CliRunner
+
+from dqnlab.bench import gpu
+from dqnlab.cli import app
+
+
+def test_the_script_end_to_end_on_cpu_quick(tmp_path: Path) -> None:
+    path = tmp_path / "bench-gpu.json"
+    assert gpu.main(["--device", "cpu", "--quick", "--json", str(path)]) == 0
+    figures = json.loads(path.read_text())
+    assert figures["machine"]["device"] == "cpu" and figures["machine"]["cores"] >= 1
+    assert {"torch", "cuda", "cuda_available"} <= set(figures["machine"])
+    for name in ("cpu_matches_device", "graph_matches_eager", "update_ms_graph_cuda",
+                 "exact_loop_graph_cuda"):  # fmt: skip
+        assert figures[name] == gpu.NO_CUDA, name
+    assert figures["update_ms_graph_off"]["back_to_back_ms"] > 0
+    loop = figures["exact_loop_graph_off"]
+    assert loop["frames_per_second"] > 0
+    assert loop["updates"] > 0 and abs(sum(loop["split"].values()) - 1.0) < 1e-3
+    for count in gpu.VECTOR_ENVS:  # measured, or said why not: never a failure
+        entry = figures[f"num_envs_{count}"]
+        assert isinstance(entry, dict) or entry.startswith("skipped"), entry
+
+
+def test_the_command_line_writes_the_same_file(tmp_path: Path, monkeypatch) -> None:  # noqa: ANN001
+    seen = {}
+    monkeypatch.setattr(
+        gpu, "run_gpu_benchmark", lambda device, quick, env, echo: seen.update(locals()) or {}
+    )
+    path = tmp_path / "out.json"
+    result = CliRunner().invoke(
+        app, ["bench", "--gpu", "--quick", "--device", "cpu", "--json", str(path), "--env", "pong"]
+    )
+    assert result.exit_code == 0, result.output
+    assert json.loads(path.read_text()) == {}
+    assert seen["device"] == torch.device("cpu") and seen["quick"] and seen["env"] == "pong"
+
+
+def test_the_agreement_check_itself_on_cpu() -> None:
+    """The CPU-against-GPU check, run with the CPU on both sides: the same bits, within
+    tolerance; the code a GPU session relies on, exercised here."""
+    agreement = gpu.cpu_matches_device(torch.device("cpu"), "pong", 0)
+    assert agreement["bit_identical"] and agreement["within_tolerance"]
+    assert agreement["largest_weight_change"] > 0
