@@ -179,8 +179,10 @@ class TrainingLoop:
         interrupted = None
         with StopRequests() as stop:
             while state.steps < config.total_steps:
-                first = state.steps + 1
-                for game in state.advance(config.total_steps - state.steps):
+                first, remaining = state.steps + 1, config.total_steps - state.steps
+                # The last advance steps only the environments the budget has room for.
+                short = remaining < len(state.envs)
+                for game in state.advance(remaining) if short else state.advance():
                     self._end_game(game)
                 step = state.steps
                 evaluated = self._crosses(first, step, config.eval_period_steps, after=True)
