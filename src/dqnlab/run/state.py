@@ -109,6 +109,8 @@ class TrainingState:
             priority_epsilon=config.priority_epsilon,
             streams=count,
         )
+        if self.replay.streams.count != count:
+            raise ValueError(f"a replay of {self.replay.streams.count} streams for {count} envs")
         if replay is None and config.replay_compression != "none" and not self.replay.compressed:
             print(
                 f"dqnlab: replay_compression = {config.replay_compression} is for image "
