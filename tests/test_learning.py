@@ -35,6 +35,23 @@ def test_classic_preset_solves_cartpole(tmp_path: Path, seed: int) -> None:
     assert result.mean >= 475
 
 
+@pytest.mark.slow
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_eight_environments_solve_cartpole_as_one_does(tmp_path: Path, seed: int) -> None:
+    """num_envs = 8 on the classic preset's budget (in agent steps summed over the eight):
+    the same score as the single-environment test above."""
+    config = resolve_config("classic", env="CartPole-v1", seed=seed, num_envs=8)
+    run = tmp_path / f"cartpole-8-envs-{seed}"
+    prepare_run_dir(run, force=False)
+    trained = train(config, run, torch.device("cpu"), progress=False, tensorboard=False)
+    result, _ = final_evaluation(run, "best", 20, seed=1000 + seed, device=torch.device("cpu"))
+    first_solved = next((step for step, mean in trained.evaluations if mean >= 475), None)
+    print(f"8 envs, seed {seed}: first periodic evaluation >= 475 at step {first_solved}; "
+          f"final 20 games {result.mean:.1f} ± {result.std:.1f}")  # fmt: skip
+    assert trained.steps == config.total_steps
+    assert result.mean >= 475
+
+
 # Each part of the DQN family on top of the classic preset (its learning settings, which
 # solve CartPole-v1), and the example variant: each must solve it too. C51's support
 # covers CartPole's returns (at most 1 / (1 - 0.99) = 100 with a reward of 1 per step).

@@ -11,6 +11,7 @@ generator for every action in training and for both networks at every update.
 from __future__ import annotations
 
 import copy
+import functools
 from collections.abc import Callable, Sequence
 from typing import Any
 
@@ -147,9 +148,28 @@ class Agent:
     def act(self, stacked_observation: np.ndarray, epsilon: float, training: bool = False) -> int:
         """The policy's action on one stacked observation (`choose`). In `training`, a
         network with noisy layers acts with fresh noise; otherwise with its mean weights."""
-        if training and self.noisy:
-            return self.choose(epsilon, lambda: self._noisy_q_values(stacked_observation[None])[0])
-        return self.choose(epsilon, lambda: self.q_values(stacked_observation[None])[0])
+        return self.act_batch(stacked_observation[None], [epsilon], training)[0]
+
+    def act_batch(
+        self, stacked_observations: np.ndarray, epsilons: Sequence[float], training: bool = False
+    ) -> list[int]:
+        """The policy's actions on a batch of stacked observations (one per environment,
+        `num_envs`), chosen in order with the agent's generator: the first choice that
+        needs Q-values computes them for the whole batch in one forward pass (with fresh
+        noise in `training`, as `act`), and the others reuse it. One observation: `act`."""
+        computed: list[np.ndarray] = []
+
+        def values(row: int) -> np.ndarray:
+            if not computed:
+                noisy = training and self.noisy
+                forward = self._noisy_q_values if noisy else self.q_values
+                computed.append(forward(stacked_observations))
+            return computed[0][row]
+
+        return [
+            self.choose(epsilon, functools.partial(values, row))
+            for row, epsilon in enumerate(epsilons)
+        ]
 
     def choose(self, epsilon: float, q_values: np.ndarray | Callable[[], np.ndarray]) -> int:
         """The policy part's action (`policies.build_policy`: epsilon-greedy unless `policy`

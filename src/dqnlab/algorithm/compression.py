@@ -147,6 +147,8 @@ class CompressedFrames:
 
     Before anything is written, every chunk holds zeros (one shared compressed chunk), as a
     raw replay's zero-filled array does, so that reads are identical to it everywhere.
+    `open_chunks` chunks may be raw at once (a replay of several streams writes one chunk
+    per stream); opening one more compresses the one written longest ago.
     """
 
     def __init__(
@@ -157,6 +159,7 @@ class CompressedFrames:
         codec: str = "lz4",
         chunk_slots: int = CHUNK_SLOTS,
         block_slots: int = BLOCK_SLOTS,
+        open_chunks: int = 1,
     ) -> None:
         check_codec(codec)
         if chunk_slots % block_slots:
@@ -171,17 +174,19 @@ class CompressedFrames:
         self.frame_bytes = int(np.prod(frame_shape)) * self.dtype.itemsize
         self.chunks = -(-capacity // chunk_slots)
         self._packed: list[PackedChunk | None] = [None] * self.chunks
-        # The chunk being written, raw; its buffer is reused for the next one.
-        self._open_index: int | None = None
-        self._open = np.zeros((chunk_slots, *frame_shape), dtype=self.dtype)
-        self._open_bytes = self._open.data.cast("B")
+        # The chunks being written, raw, by index, the one written longest ago first; their
+        # buffers are reused for the next ones.
+        self._open: dict[int, np.ndarray] = {}
+        self._free = [
+            np.zeros((chunk_slots, *frame_shape), dtype=self.dtype) for _ in range(open_chunks)
+        ]
         # Zeros compressed once per chunk length (the last chunk may be shorter), shared.
         self._zeros: dict[int, PackedChunk] = {}
         for index in range(self.chunks):
             start, stop = self.chunk_span(index)
             slots = stop - start
             if slots not in self._zeros:
-                self._zeros[slots] = pack(codec, self._open[:slots], block_slots)
+                self._zeros[slots] = pack(codec, self._free[0][:slots], block_slots)
             self._packed[index] = self._zeros[slots]
         self._scratch = np.empty((0, block_slots, *frame_shape), self.dtype)
         # Time spent compressing full chunks and decompressing reopened ones (the
@@ -203,9 +208,10 @@ class CompressedFrames:
     def chunk_pieces(self, index: int) -> Iterator[memoryview]:
         """The compressed bytes of chunk `index`, as held (the chunk being written is
         compressed for the occasion): a checkpoint writes them as they are."""
-        if index == self._open_index:
+        if index in self._open:
             start, stop = self.chunk_span(index)
-            yield from pack(self.codec, self._open[: stop - start], self.block_slots).pieces()
+            frames = self._open[index][: stop - start]
+            yield from pack(self.codec, frames, self.block_slots).pieces()
         else:
             packed = self._packed[index]
             assert packed is not None
@@ -215,7 +221,7 @@ class CompressedFrames:
         """At most the bytes `chunk_pieces` yields, for a free-space check: the chunk being
         written counts above LZ4's worst case (raw + raw/255 + 16 per block) with its
         offsets (8 per block)."""
-        if index == self._open_index:
+        if index in self._open:
             start, stop = self.chunk_span(index)
             raw = (stop - start) * self.frame_bytes
             return raw + raw // 128 + 64 * -(-(stop - start) // self.block_slots)
@@ -227,7 +233,7 @@ class CompressedFrames:
     def resident_bytes(self) -> int:
         """Bytes held: the compressed chunks (the shared zero chunk once) and the raw one."""
         seen: set[int] = set()
-        total = self._open.nbytes
+        total = sum(buffer.nbytes for buffer in (*self._open.values(), *self._free))
         for packed in self._packed:
             if packed is not None and id(packed) not in seen:
                 seen.add(id(packed))
@@ -239,39 +245,43 @@ class CompressedFrames:
     def write(self, slot: int, frame: np.ndarray) -> np.ndarray:
         """Store `frame` in `slot`; return the stored row (a view, until the next write)."""
         index = slot // self.chunk_slots
-        if index != self._open_index:
-            self._reopen(index)
+        buffer = self._open.get(index)
+        if buffer is None:
+            buffer = self._reopen(index)
+        elif len(self._open) > 1:  # now the one written last
+            self._open[index] = self._open.pop(index)
         start, stop = self.chunk_span(index)
-        row = self._open[slot - start]
+        row = buffer[slot - start]
         row[...] = frame
         if slot == stop - 1:  # the chunk is full: it cannot change until the ring returns
-            self._seal()
+            self._seal(index)
         return row
 
-    def _reopen(self, index: int) -> None:
-        if self._open_index is not None:
-            self._seal()
+    def _reopen(self, index: int) -> np.ndarray:
+        if not self._free:
+            self._seal(next(iter(self._open)))  # the one written longest ago
+        buffer = self._free.pop()
         packed = self._packed[index]
         assert packed is not None
         start, stop = self.chunk_span(index)
         began = time.perf_counter()
-        unpack(self.codec, packed, self._open[: stop - start], self.block_slots)
+        unpack(self.codec, packed, buffer[: stop - start], self.block_slots)
         self.chunk_seconds += time.perf_counter() - began
         self._packed[index] = None
-        self._open_index = index
+        self._open[index] = buffer
+        return buffer
 
-    def _seal(self) -> None:
-        index = self._open_index
-        assert index is not None
+    def _seal(self, index: int) -> None:
+        buffer = self._open.pop(index)
         start, stop = self.chunk_span(index)
         began = time.perf_counter()
-        packed = pack(self.codec, self._open[: stop - start], self.block_slots)
+        packed = pack(self.codec, buffer[: stop - start], self.block_slots)
         self.chunk_seconds += time.perf_counter() - began
         self.sealed_slots += stop - start
         self.sealed_bytes += packed.nbytes
         self.last_sealed_slots, self.last_sealed_bytes = stop - start, packed.nbytes
         self._packed[index] = packed
-        self._open_index = None
+        self._free.append(buffer)
 
     # Reading --------------------------------------------------------------------------
 
@@ -295,9 +305,10 @@ class CompressedFrames:
             zip(chunk_of.tolist(), local_of.tolist(), sizes.tolist(), strict=True)
         ):
             at = k * block_bytes
-            if index == self._open_index:
+            buffer = self._open.get(index)
+            if buffer is not None:
                 begin = local * block_bytes
-                scratch_bytes[at : at + nbytes] = self._open_bytes[begin : begin + nbytes]
+                scratch_bytes[at : at + nbytes] = buffer.data.cast("B")[begin : begin + nbytes]
                 continue
             packed = packed_chunks[index]
             assert packed is not None
@@ -319,8 +330,8 @@ class CompressedFrames:
     def chunk(self, index: int) -> np.ndarray:
         """Chunk `index`'s frames, raw (a copy): for a device upload or a conversion."""
         start, stop = self.chunk_span(index)
-        if index == self._open_index:
-            return self._open[: stop - start].copy()
+        if index in self._open:
+            return self._open[index][: stop - start].copy()
         out = np.empty((stop - start, *self.frame_shape), self.dtype)
         packed = self._packed[index]
         assert packed is not None
@@ -334,8 +345,7 @@ class CompressedFrames:
         when compressed with this codec; raw bytes (a run saved without compression, or the
         chunk that was being written) are compressed here."""
         start, stop = self.chunk_span(index)
-        if index == self._open_index:
-            self._open_index = None
+        self._discard(index)
         if encoding == self.codec:
             blocks = -(-(stop - start) // self.block_slots)
             try:
@@ -352,6 +362,10 @@ class CompressedFrames:
         """Set chunk `index` to zeros, as before anything was written: a chunk that a
         checkpoint left out because it was never written."""
         start, stop = self.chunk_span(index)
-        if index == self._open_index:
-            self._open_index = None
+        self._discard(index)
         self._packed[index] = self._zeros[stop - start]
+
+    def _discard(self, index: int) -> None:
+        """Chunk `index` is replaced: its raw frames, if open, are not kept."""
+        if index in self._open:
+            self._free.append(self._open.pop(index))

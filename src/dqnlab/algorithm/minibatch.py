@@ -160,18 +160,24 @@ class MinibatchBuffers:
         raw_slots: np.ndarray,
         source: torch.Tensor | CompressedFrames,
         is_last: np.ndarray,
-        ring_full: bool,
+        ring_full: bool | np.ndarray,
+        segment: int | None = None,
+        bases: np.ndarray | None = None,
     ) -> None:
         """Copy the frames of `raw_slots` ((batch, width) slot numbers, not yet wrapped
         round the ring of len(is_last) slots) from `source` (the replay's frames: a torch
         view of them, compressed ones, or their copy on the device, which the buffers are
         then on) into `layout`, zeros where a history reaches back across an episode's
-        start (or, before the ring is full, before slot 0)."""
+        start (or, before the ring is full, before slot 0). With streams (`streams.py`),
+        `raw_slots` count from each row's segment start `bases` and wrap round `segment`
+        slots, and `ring_full` is per row."""
         history = self.history_length
         if self._copied is not None:
             self._copied.synchronize()  # the previous minibatch's slots and mask were sent
         slots = layout.slots
-        np.remainder(raw_slots, len(is_last), out=slots)
+        np.remainder(raw_slots, segment or len(is_last), out=slots)
+        if bases is not None:
+            slots += bases[:, None]
         # A frame of a history is kept only if no episode ended between it and the
         # history's newest frame (its anchor column).
         mask = layout.mask
@@ -179,7 +185,9 @@ class MinibatchBuffers:
         for anchor in layout.anchors:
             for j in range(anchor - 1, anchor - history, -1):
                 mask[:, j] = mask[:, j + 1] & ~is_last[slots[:, j]]
-                if not ring_full:  # before the first write there is nothing
+                if isinstance(ring_full, np.ndarray):
+                    mask[:, j] &= (raw_slots[:, j] >= 0) | ring_full
+                elif not ring_full:  # before the first write there is nothing
                     mask[:, j] &= raw_slots[:, j] >= 0
         if self.device is None:
             if isinstance(source, CompressedFrames):

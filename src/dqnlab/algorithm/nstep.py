@@ -23,16 +23,28 @@ from __future__ import annotations
 import numpy as np
 
 
+def ring_slots(starts: np.ndarray, offsets: np.ndarray, segment: int) -> np.ndarray:
+    """Slots `offsets` after each of `starts`, wrapped round the start's own segment of
+    `segment` slots (the replay's streams, `streams.py`; one segment: the whole ring)."""
+    bases = starts - starts % segment
+    return bases[:, None] + ((starts - bases)[:, None] + offsets) % segment
+
+
 def window_steps(
-    terminals: np.ndarray, is_last: np.ndarray, starts: np.ndarray, n_step: int
+    terminals: np.ndarray,
+    is_last: np.ndarray,
+    starts: np.ndarray,
+    n_step: int,
+    segment: int | None = None,
 ) -> np.ndarray:
     """m for the window starting at each slot of `starts`: the steps t..t+m-1 it sums, its
     next state being slot t + m. Reads the flags of slots t..t+n, stored or not: a window
-    whose end is not stored yet is the caller's to reject (`ReplayMemory._valid`)."""
-    capacity = len(terminals)
-    steps = (starts[:, None] + np.arange(n_step)) % capacity
-    ends = terminals[steps]
-    ends |= is_last[(steps + 1) % capacity]
+    whose end is not stored yet is the caller's to reject (`ReplayMemory._valid`).
+    `segment`: the slots of a stream's ring (default: all of them, one ring)."""
+    segment = segment or len(terminals)
+    slots = ring_slots(starts, np.arange(n_step + 1), segment)
+    ends = terminals[slots[:, :-1]]
+    ends |= is_last[slots[:, 1:]]
     ends[:, -1] = True  # after n steps at the latest
     return ends.argmax(axis=1) + 1
 
@@ -51,16 +63,18 @@ def n_step_targets(
     out_returns: np.ndarray,
     out_terminals: np.ndarray,
     out_discounts: np.ndarray,
+    segment: int | None = None,
 ) -> None:
     """Into the `out_` arrays (float32): Σ_{k<m} γ^k r_{t+k} of the rewards as stored
     (clipped), summed in float64; 1.0 where the window's last step is terminal; γ^m.
     `powers`: `discount_powers(γ, n)`; `steps`: m of each window (`window_steps`)."""
-    capacity = len(rewards)
+    segment = segment or len(rewards)
     n_step = len(powers) - 1
     offsets = np.arange(n_step)
-    slots = (starts[:, None] + offsets) % capacity
+    slots = ring_slots(starts, offsets, segment)
     summed = rewards[slots] * powers[:n_step]
     summed[offsets >= steps[:, None]] = 0.0
     out_returns[...] = summed.sum(axis=1)
-    out_terminals[...] = terminals[(starts + steps - 1) % capacity]
+    bases = starts - starts % segment
+    out_terminals[...] = terminals[bases + (starts - bases + steps - 1) % segment]
     out_discounts[...] = powers[steps]

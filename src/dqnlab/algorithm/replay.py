@@ -29,6 +29,10 @@ With `compression` (`replay_compression`, image observations only), the host fra
 `CompressedFrames`: every 16,384-slot chunk but the one being written is compressed, and a
 minibatch decompresses the blocks its windows touch. The batches are the same bytes as
 without it; a device copy, when there is one, stays raw.
+
+With `streams` > 1 (`num_envs` environments), each environment's steps go to a ring of
+their own (`streams.py`), so that no history or n-step window mixes two environments; with
+one stream everything is the single ring's, draw for draw.
 """
 
 from __future__ import annotations
@@ -36,49 +40,22 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
-import psutil
 import torch
 
-from dqnlab.algorithm.compression import CHUNK_SLOTS, CompressedFrames, check_codec
+from dqnlab.algorithm.compression import CHUNK_SLOTS, CompressedFrames
 from dqnlab.algorithm.minibatch import Batch, Layout, MinibatchBuffers
 from dqnlab.algorithm.nstep import discount_powers, n_step_targets, window_steps
 from dqnlab.algorithm.prioritized import ProportionalPriorities, importance_weights
+from dqnlab.algorithm.replay_sizes import (  # noqa: F401 - `replay_bytes`: their home before
+    _SLOT_OVERHEAD_BYTES,
+    check_memory,
+    check_projection,
+    compresses,
+    open_chunks,
+    replay_bytes,
+)
+from dqnlab.algorithm.streams import ReplayStreams, WrittenSlots
 from dqnlab.config import CHOICES
-from dqnlab.errors import ResourceError
-
-_SLOT_OVERHEAD_BYTES = 4 + 4 + 1 + 1  # action int32, reward float32, terminal, is_last
-
-
-def replay_bytes(
-    capacity: int,
-    frame_shape: tuple[int, ...],
-    frame_dtype: np.dtype,
-    compressed_frame_bytes: float | None = None,
-) -> int:
-    """Host bytes of a replay; `compressed_frame_bytes`: the compressed size of one frame,
-    when the frames are compressed (plus the raw chunk being written)."""
-    frame_bytes = int(np.prod(frame_shape)) * np.dtype(frame_dtype).itemsize
-    if compressed_frame_bytes is None:
-        return capacity * (frame_bytes + _SLOT_OVERHEAD_BYTES)
-    raw_chunk = min(capacity, CHUNK_SLOTS) * frame_bytes
-    return int(capacity * (compressed_frame_bytes + _SLOT_OVERHEAD_BYTES) + raw_chunk)
-
-
-def compresses(compression: str, frame_shape: tuple[int, ...]) -> bool:
-    """Whether `compression` applies: it is for image observations, not vectors."""
-    if compression != "none":
-        check_codec(compression)
-    return compression != "none" and len(frame_shape) >= 2
-
-
-def check_memory(required_bytes: int, what: str) -> None:
-    available = psutil.virtual_memory().available
-    if required_bytes > available:
-        raise ResourceError(
-            f"{what} needs {required_bytes / 2**30:.2f} GiB but only "
-            f"{available / 2**30:.2f} GiB of memory is available; lower replay_capacity"
-        )
-
 
 SAMPLINGS = CHOICES["replay_sampling"]
 
@@ -102,28 +79,39 @@ class ReplayMemory:
         sampling: str = "uniform",
         priority_exponent: float = 0.6,
         priority_epsilon: float = 1e-6,
+        streams: int = 1,
     ) -> None:
         """`device`: also keep the frames there and gather minibatches there (see the
         module's docstring). `pin_memory`: the host minibatch buffer in page-locked memory,
         for faster copies to a GPU (needs CUDA). `compression`: a codec for the host frames
         (ignored for vector observations: `compresses`); `expected_frame_bytes`: the
         measured compressed size of one of this game's frames, which the memory check may
-        count on (without it, the check asks for the raw size: see `_check_projection`).
+        count on (without it, the check asks for the raw size: see `replay_sizes.check_projection`).
         `n_step` and `discount` (γ; 0.99 is the Config's default): the returns a sampled
         transition sums (`dqnlab.algorithm.nstep`). `sampling`: "uniform" or
         "prioritized", with `priority_exponent` (α) and `priority_epsilon` (ε)
-        (`dqnlab.algorithm.prioritized`)."""
+        (`dqnlab.algorithm.prioritized`). `streams`: rings of capacity // streams slots,
+        one per environment (`streams.py`; `add` says which)."""
         if n_step < 1:
             raise ValueError(f"n_step = {n_step} must be at least 1")
         if sampling not in SAMPLINGS:
             raise ValueError(f"sampling = {sampling!r} is not one of: {', '.join(SAMPLINGS)}")
         frame_dtype = np.dtype(frame_dtype)
+        # One stream: the whole ring, whatever its size; more: each holds a transition.
+        self.streams = ReplayStreams(
+            capacity, streams, 1 if streams == 1 else history_length + n_step + 1
+        )
+        capacity = self.streams.capacity
         self.compressed = compresses(compression, tuple(frame_shape))
         self.frame_shape = tuple(frame_shape)
         self.raw_frame_bytes = int(np.prod(frame_shape)) * frame_dtype.itemsize
         # What the replay may grow to, as far as is known before it is filled.
         self.expected_bytes = replay_bytes(
-            capacity, frame_shape, frame_dtype, expected_frame_bytes if self.compressed else None
+            capacity,
+            frame_shape,
+            frame_dtype,
+            expected_frame_bytes if self.compressed else None,
+            streams,
         )
         check_memory(self.expected_bytes, "the replay memory")
         self.capacity = capacity
@@ -135,17 +123,15 @@ class ReplayMemory:
         self.frames: np.ndarray | CompressedFrames
         if self.compressed:
             self.frames = CompressedFrames(
-                capacity, self.frame_shape, frame_dtype, compression, chunk_slots
-            )
+                capacity, self.frame_shape, frame_dtype, compression, chunk_slots,
+                open_chunks=open_chunks(streams),
+            )  # fmt: skip
         else:
             self.frames = np.zeros((capacity, *frame_shape), dtype=frame_dtype)
         self.actions = np.zeros(capacity, dtype=np.int32)
         self.rewards = np.zeros(capacity, dtype=np.float32)
         self.terminals = np.zeros(capacity, dtype=np.bool_)
         self.is_last = np.zeros(capacity, dtype=np.bool_)
-        self.position = 0  # next slot to write
-        self.size = 0
-        self.writes = 0  # slots written since creation: tells a checkpoint what changed
         self.rng = np.random.default_rng(seed)
         self._offsets = np.arange(-history_length + 1, 2, dtype=np.int64)  # a window
         self._history_offsets = self._offsets[:-1]
@@ -178,8 +164,33 @@ class ReplayMemory:
             self._n_step.batch.weights = np.ones(batch_size, dtype=np.float32)
             # The slots whose validity writing slot 0 can change (`_refresh_priorities`).
             self._refresh_offsets = np.arange(-n_step, history_length, dtype=np.int64)
-        # Where the ring was at the last prioritized draw: what `update_priorities` skips.
-        self._sampled_writes, self._sampled_position = 0, 0
+        # Where the rings were at the last prioritized draw: what `update_priorities` skips.
+        self._sampled_mark = self.streams.mark()
+
+    @property
+    def position(self) -> int:
+        """The next slot to write (of the one stream)."""
+        if self.streams.count != 1:
+            raise ValueError("a replay of several streams has one position per stream")
+        return self.streams.positions[0]
+
+    @property
+    def size(self) -> int:
+        """Slots stored, all streams together."""
+        return self.streams.size
+
+    @property
+    def writes(self) -> int:
+        """Slots written since creation, all streams together."""
+        return sum(self.streams.writes)
+
+    def mark(self) -> tuple[list[int], list[int]]:
+        """Where the rings are now, for `written_since`."""
+        return self.streams.mark()
+
+    def written_since(self, mark: tuple[list[int], list[int]]) -> WrittenSlots:
+        """The slots written since `mark`, as a checkpoint is told (`ReplayStreams`)."""
+        return self.streams.written_since(mark)
 
     @property
     def bytes_per_transition(self) -> float:
@@ -198,18 +209,31 @@ class ReplayMemory:
 
     # Writing --------------------------------------------------------------------------
 
-    def add(self, observation: np.ndarray, action: int, reward: float, terminal: bool) -> None:
-        """Store o_t, a_t, r_t and whether o_{t+1} is terminal."""
-        self._write(observation, action, reward, terminal, is_last=False)
+    def add(
+        self,
+        observation: np.ndarray,
+        action: int,
+        reward: float,
+        terminal: bool,
+        stream: int = 0,
+    ) -> None:
+        """Store o_t, a_t, r_t and whether o_{t+1} is terminal, in `stream`'s ring."""
+        self._write(observation, action, reward, terminal, False, stream)
 
-    def add_last(self, observation: np.ndarray) -> None:
+    def add_last(self, observation: np.ndarray, stream: int = 0) -> None:
         """Store the final observation of an episode (terminal or truncated)."""
-        self._write(observation, 0, 0.0, False, is_last=True)
+        self._write(observation, 0, 0.0, False, True, stream)
 
     def _write(
-        self, observation: np.ndarray, action: int, reward: float, terminal: bool, is_last: bool
+        self,
+        observation: np.ndarray,
+        action: int,
+        reward: float,
+        terminal: bool,
+        is_last: bool,
+        stream: int,
     ) -> None:
-        slot = self.position
+        slot = self.streams.advance(stream)
         sealed = None
         if isinstance(self.frames, CompressedFrames):
             sealed = self.frames.sealed_slots
@@ -224,13 +248,11 @@ class ReplayMemory:
         self.rewards[slot] = reward
         self.terminals[slot] = terminal
         self.is_last[slot] = is_last
-        self.position = (slot + 1) % self.capacity
-        self.size = min(self.size + 1, self.capacity)
-        self.writes += 1
         if self.priorities is not None:
             self._refresh_priorities(slot)
-        if sealed is not None and self.frames.sealed_slots != sealed:  # type: ignore[union-attr]
-            self._check_projection()
+        frames = self.frames
+        if isinstance(frames, CompressedFrames) and frames.sealed_slots != sealed:
+            check_projection(frames, self.capacity - self.size, self.raw_frame_bytes)
 
     def _refresh_priorities(self, slot: int) -> None:
         """Keep the non-zero leaves exactly the valid slots (`_valid`) after writing `slot`.
@@ -242,7 +264,7 @@ class ReplayMemory:
         reach back into the slot just overwritten). A few leaves, set in one tree update.
         """
         assert self.priorities is not None
-        slots = (slot + self._refresh_offsets) % self.capacity
+        slots = self.streams.wrap(np.array([slot]), self._refresh_offsets)[0]
         leaves = self.priorities.tree.leaves[slots]
         wanted = np.where(leaves > 0.0, leaves, self.priorities.new_leaf)
         wanted[~self._valid(slots)] = 0.0
@@ -261,25 +283,25 @@ class ReplayMemory:
 
     def _valid(self, slots: np.ndarray) -> np.ndarray:
         """Which slots can start a sampled transition: not an episode's last observation,
-        its next state (slot t + m, `window_steps`) stored already, and, once the ring is
+        its next state (slot t + m, `window_steps`) stored already, and, once its ring is
         full, its history not reaching back into overwritten (newest) data."""
+        streams = self.streams
         steps = (
             1
             if self.n_step == 1
-            else window_steps(self.terminals, self.is_last, slots, self.n_step)
+            else window_steps(self.terminals, self.is_last, slots, self.n_step, streams.segment)
         )
-        # Rank from the oldest slot: 0 the oldest (the next overwritten), capacity - 1 the
-        # newest. Before the ring is full, the slots not written yet rank first.
-        age = (slots - self.position) % self.capacity
-        valid = ~self.is_last[slots] & (age + steps <= self.capacity - 1)
-        if self.size < self.capacity:  # slots 0..size-1 written, size-1 the newest
-            return valid & (slots < self.size)
-        # The oldest slots' histories reach back into overwritten (newest) data.
-        return valid & (age >= self.history_length - 1)
+        # Rank in its ring from the oldest slot: 0 the oldest (the next overwritten),
+        # segment - 1 the newest. Before a ring is full, its unwritten slots rank first.
+        age, _, full = streams.ages(slots)
+        valid = ~self.is_last[slots] & (age + steps <= streams.segment - 1)
+        # Before a ring is full its local slots 0..size-1 are written, size-1 the newest;
+        # after, the oldest slots' histories reach back into overwritten (newest) data.
+        return valid & np.where(full, age >= self.history_length - 1, streams.stored(slots))
 
     def has_transition(self) -> bool:
         """Whether a complete transition (o_t to o_{t+m}) is stored, so sampling can succeed."""
-        return bool(self._valid(np.arange(self.size)).any())
+        return bool(self._valid(self.streams.slots_of(np.arange(self.size))).any())
 
     def sample_indices(self, count: int, rng: np.random.Generator | None = None) -> np.ndarray:
         """Uniform with replacement over valid transitions, by rejection (as the Lua code),
@@ -289,7 +311,8 @@ class ReplayMemory:
         filled = 0
         rejected_rounds = 0
         while filled < count:
-            candidates = rng.integers(0, max(self.size, 1), size=2 * (count - filled))
+            ranks = rng.integers(0, max(self.size, 1), size=2 * (count - filled))
+            candidates = self.streams.slots_of(ranks)
             accepted = candidates[self._valid(candidates)][: count - filled]
             indices[filled : filled + len(accepted)] = accepted
             filled += len(accepted)
@@ -313,7 +336,7 @@ class ReplayMemory:
         assert batch.weights is not None
         # N = the slots stored; it cancels in the batch-max normalisation.
         importance_weights(self._probabilities, self.size, importance_exponent, batch.weights)
-        self._sampled_writes, self._sampled_position = self.writes, self.position
+        self._sampled_mark = self.streams.mark()
         return batch
 
     def update_priorities(self, indices: np.ndarray, errors: np.ndarray | torch.Tensor) -> None:
@@ -332,9 +355,14 @@ class ReplayMemory:
         if errors.shape != indices.shape:
             raise ValueError(f"{len(errors)} errors for {len(indices)} indices")
         keep = self.priorities.tree.leaves[indices] > 0.0
-        written = min(self.writes - self._sampled_writes, self.capacity)
-        if written:  # the slots written since the draw hold other transitions now
-            keep &= (indices - self._sampled_position) % self.capacity >= written
+        # The slots written since the draw hold other transitions now.
+        positions, writes = self._sampled_mark
+        streams = self.streams
+        written = np.minimum(np.subtract(streams.writes, writes), streams.segment)
+        if written.any():
+            stream, local = streams.locate(indices)
+            since = (local - np.asarray(positions)[stream]) % streams.segment
+            keep &= since >= written[stream]
         self.priorities.update(indices[keep], errors[keep])
 
     def gather(self, indices: np.ndarray) -> Batch:
@@ -344,19 +372,22 @@ class ReplayMemory:
         if self.n_step == 1:
             return self.gather_windows(indices)
         layout = self._n_step
-        steps = window_steps(self.terminals, self.is_last, indices, self.n_step)
+        segment = self.streams.segment
+        steps = window_steps(self.terminals, self.is_last, indices, self.n_step, segment)
         history = self.history_length
+        bases = self.streams.bases(indices)
+        starts = indices if bases is None else indices - bases
         raw_slots = np.empty((len(indices), 2 * history), dtype=np.int64)
-        raw_slots[:, :history] = indices[:, None] + self._history_offsets
-        raw_slots[:, history:] = (indices + steps)[:, None] + self._history_offsets
-        self._gather_frames(layout, raw_slots)
+        raw_slots[:, :history] = starts[:, None] + self._history_offsets
+        raw_slots[:, history:] = (starts + steps)[:, None] + self._history_offsets
+        self._gather_frames(layout, raw_slots, indices, bases)
         batch = layout.batch
         assert batch.indices is not None and batch.discounts is not None
         batch.indices[:] = indices
         batch.actions[:] = self.actions[indices]
         n_step_targets(
             self.rewards, self.terminals, indices, steps, self._powers,
-            batch.rewards, batch.terminals, batch.discounts,
+            batch.rewards, batch.terminals, batch.discounts, segment,
         )  # fmt: skip
         return batch
 
@@ -365,7 +396,9 @@ class ReplayMemory:
         windows of history + 1 slots (s the first `history` frames, s' the last), r_t,
         whether s' is terminal, γ. Nature's Fig. 2 (`heldout.py`) measures these."""
         layout = self._one_step
-        self._gather_frames(layout, indices[:, None] + self._offsets)
+        bases = self.streams.bases(indices)
+        starts = indices if bases is None else indices - bases
+        self._gather_frames(layout, starts[:, None] + self._offsets, indices, bases)
         batch = layout.batch
         assert batch.indices is not None
         batch.indices[:] = indices
@@ -374,7 +407,9 @@ class ReplayMemory:
         batch.terminals[:] = self.terminals[indices]
         return batch
 
-    def _gather_frames(self, layout: Layout, raw_slots: np.ndarray) -> None:
+    def _gather_frames(
+        self, layout: Layout, raw_slots: np.ndarray, indices: np.ndarray, bases: np.ndarray | None
+    ) -> None:
         source: torch.Tensor | CompressedFrames
         if self.device is not None:
             source = self._device_frames
@@ -383,7 +418,9 @@ class ReplayMemory:
         else:
             assert self._frames_view is not None
             source = self._frames_view
-        self._buffers.gather(layout, raw_slots, source, self.is_last, self.size == self.capacity)
+        streams = self.streams
+        full = streams.full_rows(indices)
+        self._buffers.gather(layout, raw_slots, source, self.is_last, full, streams.segment, bases)
 
     def upload(self) -> None:
         """Copy the host frames to the device (after a checkpoint was loaded into them)."""
@@ -396,27 +433,6 @@ class ReplayMemory:
         else:
             assert self._frames_view is not None
             self._device_frames.copy_(self._frames_view)
-
-    def _check_projection(self) -> None:
-        """After a chunk is compressed: stop before memory runs out, not in it.
-
-        The replay grows until it is full; the chunk just compressed tells how large this
-        game's frames are when compressed, which the start-up check could only assume. If
-        the slots still to fill, at this size, need more than the memory available, raise
-        now (a ResourceError, with the figures), minutes into a run rather than hours.
-        """
-        assert isinstance(self.frames, CompressedFrames)
-        per_slot = self.frames.last_sealed_bytes / self.frames.last_sealed_slots
-        remaining = self.capacity - self.size
-        needed = remaining * per_slot
-        available = psutil.virtual_memory().available
-        if needed > available:
-            raise ResourceError(
-                f"this game's frames compress to {per_slot:.0f} bytes each "
-                f"({self.raw_frame_bytes / per_slot:.1f}x): the {remaining:,} replay slots "
-                f"still to fill need {needed / 2**30:.2f} GiB but only "
-                f"{available / 2**30:.2f} GiB of memory is available; lower replay_capacity"
-            )
 
     # State ----------------------------------------------------------------------------
 
@@ -436,27 +452,30 @@ class ReplayMemory:
         """The small state; the arrays are saved separately (`arrays`). With prioritized
         sampling, the priorities too (8 bytes a slot), so a resumed run draws the same
         minibatches."""
-        state: dict[str, Any] = {
-            "position": self.position,
-            "size": self.size,
-            "writes": self.writes,
-            "rng": self.rng.bit_generator.state,
-        }
+        state: dict[str, Any] = {"rng": self.rng.bit_generator.state}
+        if self.streams.count == 1:
+            state.update(position=self.position, size=self.size, writes=self.writes)
+        else:
+            state["streams"] = self.streams.state_dict()
         if self.priorities is not None:
             state["priorities"] = self.priorities.state_dict()
         return state
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
-        self.position = int(state["position"])
-        self.size = int(state["size"])
-        self.writes = int(state["writes"])
+        if "streams" in state:
+            self.streams.load_state_dict(state["streams"])
+        else:
+            self.streams.load_state_dict({name: [state[key]] for name, key in STREAM_KEYS.items()})
         self.rng.bit_generator.state = state["rng"]
         if self.priorities is not None:
             if "priorities" in state:
                 self.priorities.load_state_dict(state["priorities"])
             else:
                 self._rebuild_priorities()
-        self._sampled_writes, self._sampled_position = self.writes, self.position
+        self._sampled_mark = self.streams.mark()
+
+
+STREAM_KEYS = {"positions": "position", "sizes": "size", "writes": "writes"}  # one stream
 
 
 class FrameHistory:

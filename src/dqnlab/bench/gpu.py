@@ -4,7 +4,7 @@
 Figures: the machine; the update's milliseconds eager and as a CUDA graph
 (`update_graph`); training frames/s of the exact loop (nature preset, frames on the device,
 after replay start, epsilon at its final 0.1) eager and with the graph; the same with
-N = 8, 16, 32 environments (`num_envs`, where `Config` has it); and a check that one
+N = 8, 16, 32 environments (`num_envs`); and a check that one
 update on the GPU gives the CPU's weights within float tolerance, from the same weights on
 the same minibatch. Sized to take under 8 minutes on one H100/H200 with 16 cores;
 `quick` on CPU takes seconds (the CUDA-only entries then say "skipped: no CUDA").
@@ -194,8 +194,6 @@ def vector_loop(
     device: torch.device, env: str, seed: int, num_envs: int, sizes: Sizes, update_graph: str
 ) -> dict[str, Any] | str:
     """Frames/s with `num_envs` environments acting as one batch (`num_envs`)."""
-    if "num_envs" not in {field.name for field in dataclasses.fields(Config)}:
-        return "skipped: this Config has no num_envs setting (the vecenv branch adds it)"
     config = nature_config(env, seed, sizes.replay_capacity, update_graph, num_envs=num_envs)
     state = filled_state(config, device)
     figures = _training_figures(state, sizes.vector_steps)

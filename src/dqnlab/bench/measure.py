@@ -33,16 +33,18 @@ def machine_figures(device: torch.device) -> dict[str, Any]:
 
 
 def measure_training(training: TrainingState, steps: int) -> tuple[float, dict[str, float]]:
-    """Frames/s over `steps` training steps, and the fraction of time in each part."""
-    frames, start = training.env.frames, time.perf_counter()
+    """Frames/s over `steps` agent steps (of all its environments together), and the
+    fraction of time in each part."""
+    frames, start = training.frames, time.perf_counter()
     training.seconds = dict.fromkeys(training.seconds, 0.0)
-    for _ in range(steps):
-        training.advance()
+    end = training.steps + steps
+    while training.steps < end:
+        training.advance(end - training.steps)
     float(training.loss_sum)  # wait for the device
     seconds = time.perf_counter() - start
     parts = {name: training.seconds[name] / seconds for name in TIMED_PARTS}
     parts["other"] = 1.0 - sum(parts.values())  # the loop's own overhead
-    return (training.env.frames - frames) / seconds, parts
+    return (training.frames - frames) / seconds, parts
 
 
 def median_sample_us(replay: ReplayMemory, repeats: int) -> float:

@@ -107,6 +107,13 @@ def bench(
         ),
     ] = False,
     quick: Annotated[bool, typer.Option("--quick", help="--gpu with a tiny budget")] = False,
+    num_envs: Annotated[
+        str | None,
+        typer.Option(
+            help="Instead of the rest: training frames/s of the nature preset with each "
+            "listed number of environments (num_envs), e.g. 1,2,4,8",
+        ),
+    ] = None,
     sweep_runs: Annotated[
         int, typer.Option(help="Tiny CartPole runs trained each way in each --sweep repeat")
     ] = 4,
@@ -147,6 +154,12 @@ def bench(
         from dqnlab.bench.checkpoint import measure_stop_checkpoint
 
         figures = measure_stop_checkpoint(env, device=resolve_device(device))
+    elif num_envs is not None:
+        from dqnlab.bench.vector import measure_num_envs, parse_counts
+
+        figures = measure_num_envs(
+            parse_counts(num_envs), env, steps, replay_capacity or 100_000, resolve_device(device)
+        )
     elif variants is not None:
         from dqnlab.bench.variants import measure_variants, parse_variants
 

@@ -204,6 +204,13 @@ class Config:
         "Replay frames kept compressed in host memory (image observations): none, or lz4 "
         "(each filled 16,384-slot chunk compressed in blocks of 4 frames; the same minibatches)",
     )
+    # Speed that changes the data learned from (docs/benchmark.md, "Many environments").
+    num_envs: int = _setting(
+        1,
+        "Training environments stepped side by side, their actions chosen by one batched "
+        "forward pass; each has its own replay ring (capacity / num_envs slots). Steps, "
+        "schedules and periods stay counted in agent steps summed over them",
+    )
     # Checkpoints (the whole training state; a killed run resumes exactly).
     checkpoint_period_minutes: float = _setting(
         30.0, "Wall-clock minutes between checkpoints, besides one at every evaluation"
@@ -277,7 +284,7 @@ def _validate(config: Config) -> None:
         "replay_capacity", "batch_size", "update_period_steps", "target_update_steps",
         "learning_rate", "eval_period_steps", "eval_steps", "final_eval_episodes", "total_steps",
         "replay_start_steps", "rmsprop_epsilon", "adam_epsilon", "checkpoints_kept",
-        "checkpoint_period_minutes",
+        "checkpoint_period_minutes", "num_envs",
     )  # fmt: skip
     for name in positive:
         if getattr(config, name) <= 0:
@@ -291,6 +298,13 @@ def _validate(config: Config) -> None:
     for name in non_negative:
         if getattr(config, name) < 0:
             raise ConfigError(f"{name} = {getattr(config, name)} must be zero or more")
+    per_env = config.replay_capacity // config.num_envs
+    if config.num_envs > 1 and per_env < config.history_length + config.n_step + 1:
+        raise ConfigError(
+            f"num_envs = {config.num_envs} leaves {per_env} replay slots per environment "
+            f"(replay_capacity // num_envs); one transition needs "
+            f"{config.history_length + config.n_step + 1}"
+        )
     unit_interval = (
         "importance_exponent_start", "sticky_action_probability", "discount", "epsilon_start",
         "epsilon_end", "eval_epsilon",
@@ -380,7 +394,7 @@ ADDED_WITH_DEFAULTS = (
     "distributional_v_max", "loss", "dueling", "noisy", "noisy_sigma0", "torso",
     "replay_sampling", "priority_exponent", "priority_epsilon", "importance_exponent_start",
     "max_gradient_norm", "policy", "env_kwargs", "env_wrappers", "observation_images",
-    "update_graph",
+    "update_graph", "num_envs",
 )  # fmt: skip
 
 

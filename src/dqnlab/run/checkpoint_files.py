@@ -22,6 +22,7 @@ import numpy as np
 import torch
 
 from dqnlab.algorithm.compression import RAW, decode_chunk
+from dqnlab.algorithm.streams import WrittenSlots
 from dqnlab.errors import DqnlabError
 
 # Format 2 may leave a replay chunk out (null: never written, zeros) or cut a raw one short
@@ -425,30 +426,30 @@ def check_arrays(arrays: Arrays) -> int:
     return capacities.pop() if capacities else 0
 
 
-def changed_chunks(
-    changed_slots: tuple[int, int] | None, capacity: int, chunk_slots: int
-) -> set[int] | None:
+def changed_chunks(changed_slots: WrittenSlots, capacity: int, chunk_slots: int) -> set[int] | None:
     """The chunk indices holding the ring range [start, stop); None for every chunk."""
     extents = changed_extents(changed_slots, capacity, chunk_slots)
     return None if extents is None else set(extents)
 
 
 def changed_extents(
-    changed_slots: tuple[int, int] | None, capacity: int, chunk_slots: int
+    changed_slots: WrittenSlots, capacity: int, chunk_slots: int
 ) -> dict[int, int] | None:
-    """Per chunk holding a slot of the ring range [start, stop): the number of its first
-    slots that reach its last slot in the range; None for every chunk, whole."""
+    """Per chunk holding a slot of the ring range [start, stop) (or of a list of them, one
+    per replay stream): the number of its first slots that reach its last slot in the
+    range; None for every chunk, whole."""
     if changed_slots is None:
         return None
-    start, stop = changed_slots
-    if not (0 <= start < capacity and 0 <= stop <= capacity):
-        raise ValueError(f"changed_slots {changed_slots} is outside a capacity of {capacity}")
-    spans = [(start, stop)] if start <= stop else [(start, capacity), (0, stop)]
     extents: dict[int, int] = {}
-    for low, high in spans:
-        for index in range(low // chunk_slots, (high - 1) // chunk_slots + 1) if low < high else ():
-            end = min(high, (index + 1) * chunk_slots) - index * chunk_slots
-            extents[index] = max(extents.get(index, 0), end)
+    for start, stop in [changed_slots] if isinstance(changed_slots, tuple) else changed_slots:
+        if not (0 <= start < capacity and 0 <= stop <= capacity):
+            raise ValueError(f"changed slots {start, stop} are outside a capacity of {capacity}")
+        spans = [(start, stop)] if start <= stop else [(start, capacity), (0, stop)]
+        for low, high in spans:
+            first, last = low // chunk_slots, (high - 1) // chunk_slots
+            for index in range(first, last + 1) if low < high else ():
+                end = min(high, (index + 1) * chunk_slots) - index * chunk_slots
+                extents[index] = max(extents.get(index, 0), end)
     return extents
 
 

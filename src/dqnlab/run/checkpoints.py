@@ -52,6 +52,7 @@ import numpy as np
 import torch
 
 from dqnlab import __version__
+from dqnlab.algorithm.streams import WrittenSlots
 from dqnlab.errors import DqnlabError, ResourceError
 from dqnlab.run.checkpoint_files import (
     MANIFEST_FILE,
@@ -170,7 +171,7 @@ class CheckpointStore:
         step: int,
         state: dict[str, Any],
         arrays: Arrays,
-        changed_slots: tuple[int, int] | None,
+        changed_slots: WrittenSlots,
         config_fingerprint: str,
     ) -> Path:
         """Write a complete checkpoint of `step`; return its directory.
@@ -178,7 +179,8 @@ class CheckpointStore:
         `arrays` are the replay arrays (same first dimension, the capacity; a
         `ChunkedArray` is written chunk by chunk as it holds them); `changed_slots`
         is the ring range [start, stop) of slots written since the last save or load of
-        this store (stop < start wraps around; start == stop is nothing), None for all. A
+        this store (stop < start wraps around; start == stop is nothing; a list of them:
+        one per replay stream), None for all. A
         store that has neither saved nor loaded counts from the arrays' creation: their
         slots outside the range are zeros, and are not stored.
         A failed save leaves the earlier checkpoints as they were and no files behind.
@@ -281,7 +283,7 @@ class CheckpointStore:
         return record
 
     def _plan(
-        self, arrays: Arrays, changed_slots: tuple[int, int] | None, capacity: int
+        self, arrays: Arrays, changed_slots: WrittenSlots, capacity: int
     ) -> dict[str, list[_PlannedChunk]]:
         """Per array, per chunk: the slots to store and the earlier file to reuse.
 

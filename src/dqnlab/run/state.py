@@ -5,6 +5,12 @@ epsilon-greedily with the network just updated, repeat the action in the environ
 store the transition, then every `update_period_steps` (once past `replay_start_steps`)
 take one gradient step, and every `target_update_steps` copy the online network into the
 target network. The training loop around it (`dqnlab.run.train`) evaluates, logs and saves.
+
+With `num_envs` = N environments, one call steps all N: their actions come from one
+batched forward pass, each environment's transition goes to its own replay stream, and
+then the N agent steps it counts are walked in order, each doing what it would alone (an
+update every `update_period_steps`, a target copy every `target_update_steps`, the
+ε of its own step). With N = 1 that is the single loop above, bit for bit.
 """
 
 from __future__ import annotations
@@ -14,9 +20,10 @@ import shutil
 import sys
 from pathlib import Path
 from time import perf_counter
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
+import psutil
 import torch
 
 from dqnlab.algorithm.agent import build_agent, epsilon_at
@@ -25,11 +32,25 @@ from dqnlab.algorithm.heldout import HeldOutSet, HeldOutStatistics
 from dqnlab.algorithm.losses import importance_exponent_at
 from dqnlab.algorithm.replay import FrameHistory, ReplayMemory, check_memory
 from dqnlab.config import Config, derive_seeds
-from dqnlab.envs import make_env
+from dqnlab.envs import Environment, make_env
 from dqnlab.errors import DqnlabError, ResourceError
 from dqnlab.run.play import EvaluationResult, play
 
 TIMED_PARTS = ("env", "act", "store", "sample", "update")
+# Resident bytes of one more training environment, beyond its frame history: an Atari
+# emulator with its preprocessing buffers measured 1.8 MiB (Pong, 2026-12-03), CartPole
+# 0.07 MiB. Counted at twice the Atari figure for any environment.
+ENV_BYTES = 4 * 2**20
+
+
+class FinishedGame(NamedTuple):
+    """A whole training game (not a life) that ended: which environment played it, its raw
+    score, its agent steps, and the run's agent step it ended at."""
+
+    env: int
+    score: float
+    steps: int
+    step: int
 
 
 class TrainingDiverged(DqnlabError):
@@ -37,11 +58,12 @@ class TrainingDiverged(DqnlabError):
 
 
 class TrainingState:
-    """Everything a run trains with: the training and evaluation environments, the agent,
-    the replay memory, the frame history and the step counter.
+    """Everything a run trains with: the training environments (`num_envs`, `env` the
+    first) and the evaluation environment, the agent, the replay memory, a frame history per
+    environment and the step counter.
 
-    `advance()` is one agent step of the Nature algorithm; the training loop
-    (`dqnlab.run.train`) decides when to evaluate, log and save.
+    `advance()` is one agent step of the Nature algorithm per environment; the training
+    loop (`dqnlab.run.train`) decides when to evaluate, log and save.
     """
 
     def __init__(
@@ -52,7 +74,14 @@ class TrainingState:
         seeds = derive_seeds(config.seed, 7)
         random.seed(seeds[0])
         torch.manual_seed(seeds[1])
-        self.env = make_env(config, training=True, seed=seeds[2])
+        count = config.num_envs
+        # The first environment's seed is the one a single-environment run uses.
+        env_seeds = [seeds[2], *derive_seeds(seeds[2], count)[1:]]
+        self.env = make_env(config, training=True, seed=env_seeds[0])
+        check_env_memory(config, self.env.observation_shape, self.env.observation_dtype)
+        self.envs: list[Environment] = [self.env] + [
+            make_env(config, training=True, seed=env_seed) for env_seed in env_seeds[1:]
+        ]
         self.eval_env = make_env(
             config, training=False, seed=seeds[3], max_episode_frames=config.eval_max_episode_frames
         )
@@ -78,7 +107,10 @@ class TrainingState:
             sampling=config.replay_sampling,
             priority_exponent=config.priority_exponent,
             priority_epsilon=config.priority_epsilon,
+            streams=count,
         )
+        if self.replay.streams.count != count:
+            raise ValueError(f"a replay of {self.replay.streams.count} streams for {count} envs")
         if replay is None and config.replay_compression != "none" and not self.replay.compressed:
             print(
                 f"dqnlab: replay_compression = {config.replay_compression} is for image "
@@ -86,13 +118,21 @@ class TrainingState:
                 "stored uncompressed",
                 file=sys.stderr,
             )
-        self.history = FrameHistory(
-            config.history_length, self.env.observation_shape, self.env.observation_dtype
+        # The environments' histories, side by side: the batch the agent acts on.
+        self.stacked = np.zeros(
+            (count, config.history_length, *self.env.observation_shape),
+            dtype=self.env.observation_dtype,
         )
+        self.histories = []
+        for frames in self.stacked:
+            history = FrameHistory(config.history_length, self.env.observation_shape, frames.dtype)
+            history.frames = frames  # a view: pushes and resets fill the batch in place
+            self.histories.append(history)
+        self.history = self.histories[0]
         self.steps = 0
         self.epsilon = epsilon_at(0, config)
-        self.game_score = 0.0  # raw score of the game in progress
-        self.game_steps = 0
+        self.game_scores = [0.0] * count  # raw score of each game in progress
+        self.game_steps = [0] * count
         self.loss_sum = torch.zeros((), device=device)  # summed on device: no sync per update
         self.losses = 0
         self.seconds = dict.fromkeys(TIMED_PARTS + ("total",), 0.0)
@@ -103,56 +143,82 @@ class TrainingState:
         # replay start with a generator of their own: the run's minibatches stay the same.
         self.heldout: HeldOutSet | None = None
         self.heldout_rng = np.random.default_rng(seeds[6])
-        self.history.reset(self.env.reset())
+        for history, env in zip(self.histories, self.envs, strict=True):
+            history.reset(env.reset())
 
-    def advance(self) -> tuple[float, int] | None:
-        """One agent step; returns (raw score, steps) of a game that just ended, else None.
+    @property
+    def frames(self) -> int:
+        """Training frames of all the environments together."""
+        return sum(env.frames for env in self.envs)
+
+    def advance(self, max_steps: int | None = None) -> list[FinishedGame]:
+        """One agent step in each environment (in the first `max_steps` of them, when
+        fewer remain in the budget); returns the games that ended.
 
         The time of each part is added to `self.seconds` (a few clock reads per step).
         """
         config = self.config
         seconds = self.seconds
-        self.steps += 1
-        step = self.steps
+        count = len(self.envs) if max_steps is None else min(len(self.envs), max_steps)
+        first = self.steps + 1
         start = perf_counter()
-        self.epsilon = epsilon_at(step - 1, config)
-        action = self.agent.act(self.history.frames, self.epsilon, training=True)
-        acted = perf_counter()
-        observation, reward, terminated, truncated = self.env.step(action)
-        stepped = perf_counter()
-        clip = config.reward_clip
-        self.replay.add(
-            self.history.newest,
-            action,
-            max(-clip, min(clip, reward)) if clip else reward,
-            terminated,
-        )
-        self.game_score += reward
-        self.game_steps += 1
-        finished = None
-        reset_seconds = 0.0
-        if terminated or truncated:
-            self.replay.add_last(observation)
-            if self.env.game_ended:
-                finished = (self.game_score, self.game_steps)
-                self.game_score, self.game_steps = 0.0, 0
-            reset_start = perf_counter()
-            observation = self.env.reset()
-            reset_seconds = perf_counter() - reset_start
-            self.history.reset(observation)
+        epsilons = [epsilon_at(step - 1, config) for step in range(first, first + count)]
+        self.epsilon = epsilons[-1]
+        if count == 1:  # `act` is act_batch of one; an agent that overrides it still acts
+            actions = [self.agent.act(self.stacked[0], epsilons[0], training=True)]
         else:
-            self.history.push(observation)
+            actions = self.agent.act_batch(self.stacked[:count], epsilons, training=True)
+        acted = perf_counter()
+        finished = []
+        env_seconds = 0.0
+        clip = config.reward_clip
+        for index, action in enumerate(actions):
+            env, history = self.envs[index], self.histories[index]
+            env_start = perf_counter()
+            observation, reward, terminated, truncated = env.step(action)
+            env_seconds += perf_counter() - env_start
+            self.replay.add(
+                history.newest,
+                action,
+                max(-clip, min(clip, reward)) if clip else reward,
+                terminated,
+                index,
+            )
+            self.game_scores[index] += reward
+            self.game_steps[index] += 1
+            if terminated or truncated:
+                self.replay.add_last(observation, index)
+                if env.game_ended:
+                    score, steps = self.game_scores[index], self.game_steps[index]
+                    finished.append(FinishedGame(index, score, steps, first + index))
+                    self.game_scores[index], self.game_steps[index] = 0.0, 0
+                reset_start = perf_counter()
+                observation = env.reset()
+                env_seconds += perf_counter() - reset_start  # resets are environment time
+                history.reset(observation)
+            else:
+                history.push(observation)
         stored = perf_counter()
         seconds["act"] += acted - start
-        seconds["env"] += stepped - acted + reset_seconds  # resets are environment time
-        seconds["store"] += stored - stepped - reset_seconds
+        seconds["env"] += env_seconds
+        seconds["store"] += stored - acted - env_seconds
+        for step in range(first, first + count):
+            self.steps = step
+            self._learn(step)
+        seconds["total"] += perf_counter() - start
+        return finished
 
+    def _learn(self, step: int) -> None:
+        """What agent step `step` does after its transition is stored: the held-out draw,
+        an update every `update_period_steps`, a target copy every `target_update_steps`."""
+        config, seconds = self.config, self.seconds
         if self.heldout is None and config.heldout_transitions and step > config.replay_start_steps:
             # Lua NeuralQLearner:perceive draws them when numSteps == learn_start + 1.
             self.heldout = HeldOutSet.draw(
                 self.replay, config.heldout_transitions, self.heldout_rng
             )
         if step > config.replay_start_steps and step % config.update_period_steps == 0:
+            sampling = perf_counter()
             prioritized = config.replay_sampling == "prioritized"
             batch = (
                 self.replay.sample(importance_exponent=importance_exponent_at(step, config))
@@ -172,12 +238,10 @@ class TrainingState:
             self.loss_sum += loss
             self.losses += 1
             updated = perf_counter()
-            seconds["sample"] += sampled - stored
+            seconds["sample"] += sampled - sampling
             seconds["update"] += updated - sampled
         if step % config.target_update_steps == 0:
             self.agent.sync_target()
-        seconds["total"] += perf_counter() - start
-        return finished
 
     def evaluate(self) -> EvaluationResult:
         """A periodic evaluation: `eval_steps` steps at `eval_epsilon`, finished games count."""
@@ -210,40 +274,57 @@ class TrainingState:
         return mean
 
     def state_dict(self) -> dict[str, Any]:
-        """Everything but the replay arrays (saved chunk by chunk, `replay.arrays`)."""
+        """Everything but the replay arrays (saved chunk by chunk, `replay.arrays`). The
+        first environment's under the keys of a single-environment run, the others' in
+        "more_envs"."""
         state = {
             "steps": self.steps,
             "epsilon": self.epsilon,
-            "game_score": self.game_score,
-            "game_steps": self.game_steps,
+            **self._env_state(0),
             "loss_sum": self.loss_sum.detach().cpu(),
             "losses": self.losses,
             "agent": self.agent.state_dict(),
             "replay": self.replay.state_dict(),
-            "env": self.env.state_dict(),
             "eval_env": self.eval_env.state_dict(),
-            "history": torch.from_numpy(self.history.frames.copy()),
             "python_random": random.getstate(),
             "torch_random": torch.get_rng_state(),
             "heldout": None if self.heldout is None else self.heldout.state_dict(),
             "heldout_rng": self.heldout_rng.bit_generator.state,
         }
+        if len(self.envs) > 1:
+            state["more_envs"] = [self._env_state(index) for index in range(1, len(self.envs))]
         if torch.cuda.is_available():
             state["cuda_random"] = torch.cuda.get_rng_state_all()
         return state
 
+    def _env_state(self, index: int) -> dict[str, Any]:
+        return {
+            "game_score": self.game_scores[index],
+            "game_steps": self.game_steps[index],
+            "env": self.envs[index].state_dict(),
+            "history": torch.from_numpy(self.histories[index].frames.copy()),
+        }
+
+    def _load_env_state(self, index: int, state: dict[str, Any]) -> None:
+        self.game_scores[index] = float(state["game_score"])
+        self.game_steps[index] = int(state["game_steps"])
+        self.envs[index].load_state_dict(state["env"])
+        self.histories[index].frames[...] = state["history"].numpy()
+
     def load_state_dict(self, state: dict[str, Any]) -> None:
+        more = state.get("more_envs", [])
+        if len(more) + 1 != len(self.envs):
+            raise ValueError(f"a state of {len(more) + 1} environments, not {len(self.envs)}")
         self.steps = int(state["steps"])
         self.epsilon = float(state["epsilon"])
-        self.game_score = float(state["game_score"])
-        self.game_steps = int(state["game_steps"])
+        self._load_env_state(0, state)
+        for index, env_state in enumerate(more, start=1):
+            self._load_env_state(index, env_state)
         self.loss_sum.copy_(state["loss_sum"])
         self.losses = int(state["losses"])
         self.agent.load_state_dict(state["agent"])
         self.replay.load_state_dict(state["replay"])
-        self.env.load_state_dict(state["env"])
         self.eval_env.load_state_dict(state["eval_env"])
-        self.history.frames[...] = state["history"].numpy()
         self._load_heldout(state)
         random.setstate(state["python_random"])
         torch.set_rng_state(state["torch_random"])
@@ -284,7 +365,8 @@ class TrainingState:
                 )
 
     def close(self) -> None:
-        self.env.close()
+        for env in self.envs:
+            env.close()
         self.eval_env.close()
 
 
@@ -318,6 +400,20 @@ def replay_device(
             2 * needed, "the replay with a second copy of its frames (replay_storage = device)"
         )
     return device
+
+
+def check_env_memory(config: Config, frame_shape: tuple[int, ...], frame_dtype: np.dtype) -> None:
+    """Refuse more training environments than memory holds (`ENV_BYTES` each, with their
+    frame histories), in one line naming `num_envs`."""
+    frame_bytes = int(np.prod(frame_shape)) * np.dtype(frame_dtype).itemsize
+    needed = config.num_envs * (ENV_BYTES + config.history_length * frame_bytes)
+    available = psutil.virtual_memory().available
+    if needed > available:
+        raise ResourceError(
+            f"num_envs = {config.num_envs}: the environments need about "
+            f"{needed / 2**30:.2f} GiB but only {available / 2**30:.2f} GiB of memory is "
+            "available; lower num_envs"
+        )
 
 
 def check_disk(run_dir: Path, replay: ReplayMemory) -> None:

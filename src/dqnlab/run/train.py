@@ -1,12 +1,15 @@
 """The training loop: the Nature algorithm's steps (`state.TrainingState.advance`), and
 around them, each in a method of its own, what a run does besides learning.
 
-    for every step:      advance the algorithm one agent step
+    for every step:      advance the algorithm one agent step (one per environment)
     a game ended:        log its raw score                               (_end_game)
     every eval period:   evaluate; keep the best, worst, evaluated nets  (_evaluate)
     every 1,000 steps:   check for NaN, log loss and frames/s, progress  (_report_progress)
     when due:            write a complete training checkpoint            (_checkpoint)
     on SIGINT/SIGTERM:   checkpoint, then stop                           (StopRequests)
+
+With `num_envs` = N, one advance is N agent steps: a period's work happens after the
+advance whose steps cross one of its multiples, at the step the advance ended on.
 """
 
 from __future__ import annotations
@@ -24,15 +27,15 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from dqnlab.algorithm.agent import recorded_network
+from dqnlab.algorithm.agent import epsilon_at, recorded_network
 from dqnlab.config import Config, config_fingerprint
 from dqnlab.errors import DqnlabError
 from dqnlab.run import rundir
-from dqnlab.run.checkpoints import CheckpointStore, written_slots
+from dqnlab.run.checkpoints import CheckpointStore
 from dqnlab.run.lease import RunLease
 from dqnlab.run.logs import RunLogger
 from dqnlab.run.play import EvaluationResult
-from dqnlab.run.state import TrainingState, check_disk
+from dqnlab.run.state import FinishedGame, TrainingState, check_disk
 from dqnlab.run.wandb_log import WandbLog, import_wandb, uses_wandb
 
 PROGRESS_PERIOD_STEPS = 1000  # NaN checks, TensorBoard scalars and the progress bar
@@ -157,13 +160,13 @@ class TrainingLoop:
             resume_step=resume_step,
             wandb_log=WandbLog(run_dir, config, resume_step) if uses_wandb(config) else None,
         )
-        replay, env = self.state.replay, self.state.env
-        self.saved_position, self.saved_writes = replay.position, replay.writes
+        frames = self.state.frames
+        self.saved_mark = self.state.replay.mark()
         self.saved_time = time.monotonic()
         self.recent_scores: deque[float] = deque(self.progress.recent_scores, maxlen=RECENT_GAMES)
-        self.start, self.start_frames = time.perf_counter(), env.frames
-        self.window_start, self.window_frames = self.start, env.frames  # frames/s window
-        self.learning_since = (self.start, env.frames)  # time and frames when learning starts
+        self.start, self.start_frames = time.perf_counter(), frames
+        self.window_start, self.window_frames = self.start, frames  # frames/s window
+        self.learning_since = (self.start, frames)  # time and frames when learning starts
         self.bar = tqdm(
             total=config.total_steps, initial=self.state.steps, disable=not progress,
             unit="step", smoothing=0.05,
@@ -175,18 +178,21 @@ class TrainingLoop:
         config, state = self.config, self.state
         interrupted = None
         with StopRequests() as stop:
-            for step in range(state.steps + 1, config.total_steps + 1):
-                finished = state.advance()
-                if finished is not None:
-                    self._end_game(step, *finished)
-                evaluated = self._is_evaluation_step(step)
+            while state.steps < config.total_steps:
+                first, remaining = state.steps + 1, config.total_steps - state.steps
+                # The last advance steps only the environments the budget has room for.
+                short = remaining < len(state.envs)
+                for game in state.advance(remaining) if short else state.advance():
+                    self._end_game(game)
+                step = state.steps
+                evaluated = self._crosses(first, step, config.eval_period_steps, after=True)
                 if evaluated:
                     self._evaluate(step)
-                if step % PROGRESS_PERIOD_STEPS == 0:
+                if self._crosses(first, step, PROGRESS_PERIOD_STEPS):
                     self._report_progress(step)
-                if step == config.replay_start_steps:
-                    self.learning_since = (time.perf_counter(), state.env.frames)
-                if evaluated or stop.signal_name is not None or self._checkpoint_due(step):
+                if first <= config.replay_start_steps <= step:
+                    self.learning_since = (time.perf_counter(), state.frames)
+                if evaluated or stop.signal_name is not None or self._checkpoint_due(first, step):
                     self._checkpoint(step)
                 if stop.signal_name is not None:
                     interrupted = stop.signal_name
@@ -196,25 +202,28 @@ class TrainingLoop:
 
     # Phases --------------------------------------------------------------------------
 
-    def _end_game(self, step: int, score: float, steps: int) -> None:
-        """A training game ended (a whole game, not a life): log its raw score."""
+    def _end_game(self, game: FinishedGame) -> None:
+        """A training game ended (a whole game, not a life, in any environment): log its
+        raw score, at the agent step it ended and the ε it was played at then."""
         self.progress.episodes += 1
-        self.recent_scores.append(score)
+        self.recent_scores.append(game.score)
         self.logger.episode(
             {
-                "step": step,
-                "frames": self.state.env.frames,
+                "step": game.step,
+                "frames": self.state.frames,
                 "episode": self.progress.episodes,
-                "score": score,
-                "steps": steps,
-                "epsilon": round(self.state.epsilon, 6),
+                "score": game.score,
+                "steps": game.steps,
+                "epsilon": round(epsilon_at(game.step - 1, self.config), 6),
                 "wall_seconds": round(time.perf_counter() - self.start, 3),
             }
         )
 
-    def _is_evaluation_step(self, step: int) -> bool:
-        config = self.config
-        return step % config.eval_period_steps == 0 and step > config.replay_start_steps
+    def _crosses(self, first: int, last: int, period: int, after: bool = False) -> bool:
+        """Whether agent steps first..last hold a multiple of `period` (past replay start,
+        with `after`): with one environment, whether step `last` is one."""
+        multiple = last - last % period  # the last multiple up to `last`
+        return multiple >= first and not (after and multiple <= self.config.replay_start_steps)
 
     def _evaluate(self, step: int) -> None:
         """A periodic evaluation: its mean decides the best network, and the networks kept
@@ -236,7 +245,7 @@ class TrainingLoop:
         self.logger.evaluation(
             {
                 "step": step,
-                "frames": self.state.env.frames,
+                "frames": self.state.frames,
                 "mean": mean,
                 "std": result.std,
                 "episodes": len(result.scores),
@@ -256,7 +265,7 @@ class TrainingLoop:
         state = self.state
         if not state.check_every_update:
             state.check_finite()
-        now, frames = time.perf_counter(), state.env.frames
+        now, frames = time.perf_counter(), state.frames
         frames_per_second = (frames - self.window_frames) / (now - self.window_start)
         self.window_start, self.window_frames = now, frames
         scalars = {"train/epsilon": state.epsilon, "train/frames_per_second": frames_per_second}
@@ -274,13 +283,14 @@ class TrainingLoop:
                 refresh=False,
             )
 
-    def _checkpoint_due(self, step: int) -> bool:
+    def _checkpoint_due(self, first: int, step: int) -> bool:
         """At the end of the budget, every `checkpoint_period_steps` and every
         `checkpoint_period_minutes` (besides every evaluation and a stop request)."""
         config = self.config
+        period = config.checkpoint_period_steps
         return (
             step == config.total_steps
-            or (config.checkpoint_period_steps > 0 and step % config.checkpoint_period_steps == 0)
+            or (period > 0 and self._crosses(first, step, period))
             or time.monotonic() - self.saved_time >= config.checkpoint_period_minutes * 60
         )
 
@@ -295,9 +305,7 @@ class TrainingLoop:
         state.check_finite()
         self.progress.recent_scores = list(self.recent_scores)
         self.logger.flush()
-        changed = written_slots(
-            self.saved_position, replay.writes - self.saved_writes, replay.capacity
-        )
+        changed = replay.written_since(self.saved_mark)
         # "learner": the key of the training state in checkpoints written since the first.
         saved = {"learner": state.state_dict(), "run": dataclasses.asdict(self.progress)}
         try:
@@ -311,7 +319,7 @@ class TrainingLoop:
             tqdm.write(f"dqnlab: warning: checkpoint at step {step} failed, training goes on: "
                        f"{error}")  # fmt: skip
             return
-        self.saved_position, self.saved_writes = replay.position, replay.writes
+        self.saved_mark = replay.mark()
         self.saved_time = time.monotonic()
 
     def _restore(self, device: torch.device) -> None:
@@ -324,12 +332,12 @@ class TrainingLoop:
             self.progress = RunProgress(**loaded.state["run"])
 
     def _finish(self, interrupted: str | None) -> TrainResult:
-        state, env = self.state, self.state.env
+        state = self.state
         self.bar.update(state.steps - self.bar.n)
         self.bar.close()
         end = time.perf_counter()
         learning_seconds = end - self.learning_since[0]
-        learning_frames = env.frames - self.learning_since[1]
+        learning_frames = state.frames - self.learning_since[1]
         best = rundir.network_path(self.run_dir, "best")
         if not best.exists():
             # No periodic evaluation happened (a very short run): the final network stands in.
@@ -338,14 +346,14 @@ class TrainingLoop:
         state.close()
         return TrainResult(
             steps=state.steps,
-            frames=env.frames,
+            frames=state.frames,
             seconds=end - self.start,
             learning_frames_per_second=learning_frames / learning_seconds
             if learning_seconds
             else 0.0,
             best_eval_mean=self.progress.best_mean,
             evaluations=self.progress.evaluations,
-            session_frames=env.frames - self.start_frames,
+            session_frames=state.frames - self.start_frames,
             interrupted=interrupted,
         )
 

@@ -41,7 +41,9 @@ def replay_memory_bytes(config: Config) -> int:
         compressed = expected_frame_bytes(config.replay_compression, config.env)
     import numpy as np
 
-    return replay_bytes(config.replay_capacity, frame_shape, np.dtype(np.uint8), compressed)
+    return replay_bytes(
+        config.replay_capacity, frame_shape, np.dtype(np.uint8), compressed, config.num_envs
+    )
 
 
 def run_memory_bytes(config: Config) -> int:

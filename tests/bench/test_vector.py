@@ -1,0 +1,27 @@
+"""`dqnlab bench --num-envs`: one set of figures per number of environments."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from dqnlab.bench.vector import measure_num_envs, parse_counts
+from dqnlab.errors import ConfigError
+
+
+def test_each_count_gets_its_training_figures() -> None:
+    figures = measure_num_envs(
+        [2, 1], env="pong", steps=12, replay_capacity=600, device=torch.device("cpu"), rounds=1
+    )
+    for count in (1, 2):
+        assert figures[f"num_envs_{count}_train_frames_per_second"] > 0
+        assert len(figures[f"num_envs_{count}_train_frames_per_second_runs"]) == 1
+        assert 0 <= figures[f"num_envs_{count}_share_env"] <= 1
+    assert figures["num_envs_1_ratio_vs_1"] == 1.0
+
+
+def test_bad_counts_are_refused_in_one_line() -> None:
+    assert parse_counts("1, 2,8") == [1, 2, 8]
+    for text in ("0,2", "two", ""):
+        with pytest.raises(ConfigError, match="--num-envs"):
+            parse_counts(text)
