@@ -26,9 +26,9 @@ def test_the_script_end_to_end_on_cpu_quick(tmp_path: Path) -> None:
     loop = figures["exact_loop_graph_off"]
     assert loop["frames_per_second"] > 0
     assert loop["updates"] > 0 and abs(sum(loop["split"].values()) - 1.0) < 1e-3
-    for count in gpu.VECTOR_ENVS:  # measured, or said why not: never a failure
+    for count in gpu.VECTOR_ENVS:  # measured on CPU too: never a failure, never skipped
         entry = figures[f"num_envs_{count}"]
-        assert isinstance(entry, dict) or entry.startswith("skipped"), entry
+        assert isinstance(entry, dict) and entry["frames_per_second"] > 0, entry
 
 
 def test_the_command_line_writes_the_same_file(tmp_path: Path, monkeypatch) -> None:  # noqa: ANN001

@@ -141,11 +141,12 @@ def filled_state(config: Config, device: torch.device) -> TrainingState:
     on_device = replay_device(config, device, (84, 84), np.dtype(np.uint8))
     replay = ReplayMemory(
         config.replay_capacity, (84, 84), np.uint8, config.history_length, config.batch_size,
-        config.seed, device=on_device,
+        config.seed, device=on_device, streams=config.num_envs,
     )  # fmt: skip
     pool = np.random.default_rng(config.seed).integers(0, 256, size=(64, 84, 84), dtype=np.uint8)
+    streams = config.num_envs  # one ring per environment, written in turn as a vector step does
     for i in range(config.replay_capacity):
-        replay.add(pool[i % 64], i % 4, float(i % 3 - 1), i % 500 == 499)
+        replay.add(pool[i % 64], i % 4, float(i % 3 - 1), i % 500 == 499, i % streams)
     return TrainingState(config, device, replay=replay)
 
 
