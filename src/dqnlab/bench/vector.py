@@ -6,7 +6,10 @@ for most of a run) in alternating rounds, so that a change in the machine's load
 every N alike. What N changes per agent step: one forward pass chooses N actions, and the
 N emulators are stepped one after another in this process (docs/benchmark.md, "Many
 environments", says why not in worker processes). The update, one per 4 agent steps, is
-the same work for any N.
+the same work for any N. With `--concurrency none,actor-learner` each N is measured both
+ways: the actor thread's acting and emulator time then overlap the update, so the shares
+of the parts add up to more than 1, and `share_learner_waiting` is the learner's time
+waiting for the actor.
 """
 
 from __future__ import annotations
@@ -20,6 +23,8 @@ from dqnlab.algorithm.replay import ReplayMemory
 from dqnlab.bench.measure import machine_figures, measure_training
 from dqnlab.config import resolve_config
 from dqnlab.errors import ConfigError
+from dqnlab.config.settings import CHOICES
+from dqnlab.run.concurrent import training_state
 from dqnlab.run.state import TrainingState
 
 
@@ -32,6 +37,21 @@ def parse_counts(text: str) -> list[int]:
     if not counts or min(counts) < 1:
         raise ConfigError(f"--num-envs {text!r}: give counts of at least 1, e.g. 1,2,4,8")
     return counts
+
+
+def parse_concurrency(text: str) -> list[str]:
+    """A comma-separated list of `concurrency` values."""
+    values = [part.strip() for part in text.split(",") if part.strip()]
+    choices = CHOICES["concurrency"]
+    if not values or any(value not in choices for value in values):
+        raise ConfigError(f"--concurrency {text!r}: give some of {', '.join(choices)}")
+    return values
+
+
+def row_key(count: int, concurrency: str) -> str:
+    """The figures' prefix for N environments and a concurrency (none: the older keys)."""
+    suffix = "" if concurrency == "none" else "_" + concurrency.replace("-", "_")
+    return f"num_envs_{count}{suffix}"
 
 
 def _fill(replay: ReplayMemory, rng: np.random.Generator) -> None:
@@ -51,9 +71,11 @@ def measure_num_envs(
     device: torch.device | None = None,
     seed: int = 0,
     rounds: int = 2,
+    concurrency: tuple[str, ...] = ("none",),
 ) -> dict[str, Any]:
-    """Training frames/s and where the time goes for each number of environments, as
-    `num_envs_{N}_{figure}` keys beside the machine's."""
+    """Training frames/s and where the time goes for each number of environments (and
+    each `concurrency`), as `num_envs_{N}[_actor_learner]_{figure}` keys beside the
+    machine's."""
     device = device or torch.device("cpu")
     figures: dict[str, Any] = {
         "env": env,
@@ -62,34 +84,36 @@ def measure_num_envs(
         "steps": steps,
         "rounds": rounds,
     }
-    states: dict[int, TrainingState] = {}
+    states: dict[str, TrainingState] = {}
     for count in counts:
-        config = resolve_config(
-            "nature", env=env, seed=seed, replay_capacity=replay_capacity, num_envs=count
-        )
-        state = TrainingState(config, device)
-        _fill(state.replay, np.random.default_rng(seed))
-        state.steps = config.replay_start_steps + config.epsilon_decay_steps
-        measure_training(state, 100)  # warm-up
-        states[count] = state
-    runs: dict[int, list[float]] = {count: [] for count in counts}
-    parts: dict[int, list[dict[str, float]]] = {count: [] for count in counts}
+        for mode in concurrency:
+            config = resolve_config(
+                "nature", env=env, seed=seed, replay_capacity=replay_capacity, num_envs=count,
+                concurrency=mode,
+            )  # fmt: skip
+            state = training_state(config, device)
+            _fill(state.replay, np.random.default_rng(seed))
+            state.steps = config.replay_start_steps + config.epsilon_decay_steps
+            measure_training(state, 100)  # warm-up
+            states[row_key(count, mode)] = state
+    runs: dict[str, list[float]] = {key: [] for key in states}
+    parts: dict[str, list[dict[str, float]]] = {key: [] for key in states}
     for _ in range(rounds):
-        for count, state in states.items():
+        for key, state in states.items():
             frames_per_second, shares = measure_training(state, steps)
-            runs[count].append(frames_per_second)
-            parts[count].append(shares)
-    for count, state in states.items():
-        key = f"num_envs_{count}"
-        figures[f"{key}_train_frames_per_second"] = float(np.mean(runs[count]))
-        figures[f"{key}_train_frames_per_second_runs"] = [round(f, 1) for f in runs[count]]
-        for part in parts[count][0]:
-            share = float(np.mean([shares[part] for shares in parts[count]]))
+            if "wait" in state.seconds:
+                shares["learner_waiting"] = state.seconds["wait"] / state.seconds["total"]
+            runs[key].append(frames_per_second)
+            parts[key].append(shares)
+    for key, state in states.items():
+        figures[f"{key}_train_frames_per_second"] = float(np.mean(runs[key]))
+        figures[f"{key}_train_frames_per_second_runs"] = [round(f, 1) for f in runs[key]]
+        for part in parts[key][0]:
+            share = float(np.mean([shares[part] for shares in parts[key]]))
             figures[f"{key}_share_{part}"] = round(share, 4)
         state.close()
     base = figures.get("num_envs_1_train_frames_per_second")
-    for count in counts:
+    for key in states:
         if base:
-            ratio = figures[f"num_envs_{count}_train_frames_per_second"] / base
-            figures[f"num_envs_{count}_ratio_vs_1"] = ratio
+            figures[f"{key}_ratio_vs_1"] = figures[f"{key}_train_frames_per_second"] / base
     return figures

@@ -114,6 +114,13 @@ def bench(
             "listed number of environments (num_envs), e.g. 1,2,4,8",
         ),
     ] = None,
+    concurrency: Annotated[
+        str,
+        typer.Option(
+            help="With --num-envs: each count measured with each listed concurrency, e.g. "
+            "none,actor-learner"
+        ),
+    ] = "none",
     sweep_runs: Annotated[
         int, typer.Option(help="Tiny CartPole runs trained each way in each --sweep repeat")
     ] = 4,
@@ -155,10 +162,15 @@ def bench(
 
         figures = measure_stop_checkpoint(env, device=resolve_device(device))
     elif num_envs is not None:
-        from dqnlab.bench.vector import measure_num_envs, parse_counts
+        from dqnlab.bench.vector import measure_num_envs, parse_concurrency, parse_counts
 
         figures = measure_num_envs(
-            parse_counts(num_envs), env, steps, replay_capacity or 100_000, resolve_device(device)
+            parse_counts(num_envs),
+            env,
+            steps,
+            replay_capacity or 100_000,
+            resolve_device(device),
+            concurrency=tuple(parse_concurrency(concurrency)),
         )
     elif variants is not None:
         from dqnlab.bench.variants import measure_variants, parse_variants

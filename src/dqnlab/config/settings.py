@@ -211,6 +211,19 @@ class Config:
         "forward pass; each has its own replay ring (capacity / num_envs slots). Steps, "
         "schedules and periods stay counted in agent steps summed over them",
     )
+    concurrency: str = _setting(
+        "none",
+        "none: act, store, learn in turn (Nature, the Lua code); actor-learner: a thread steps "
+        "the environments with a copy of the online network refreshed every "
+        "actor_refresh_updates updates while the learner updates; the replay ratio is held "
+        '(docs/benchmark.md, "Acting while learning")',
+    )
+    actor_refresh_updates: int = _setting(
+        4,
+        "actor-learner: the actor's network is the online network after the last update "
+        "whose number is a multiple of this and at least this many updates old (so K to "
+        "2K - 1 updates behind the learner's)",
+    )
     # Checkpoints (the whole training state; a killed run resumes exactly).
     checkpoint_period_minutes: float = _setting(
         30.0, "Wall-clock minutes between checkpoints, besides one at every evaluation"
@@ -259,6 +272,7 @@ CHOICES: dict[str, tuple[str, ...]] = {
     "target": ("max", "double"),
     "distributional": ("none", "c51"),
     "replay_sampling": ("uniform", "prioritized"),
+    "concurrency": ("none", "actor-learner"),
 }
 # Settings that take one of `CHOICES` or the `module:Name` of a user's own part.
 USER_PARTS: dict[str, tuple[str, ...]] = {
@@ -284,7 +298,7 @@ def _validate(config: Config) -> None:
         "replay_capacity", "batch_size", "update_period_steps", "target_update_steps",
         "learning_rate", "eval_period_steps", "eval_steps", "final_eval_episodes", "total_steps",
         "replay_start_steps", "rmsprop_epsilon", "adam_epsilon", "checkpoints_kept",
-        "checkpoint_period_minutes", "num_envs",
+        "checkpoint_period_minutes", "num_envs", "actor_refresh_updates",
     )  # fmt: skip
     for name in positive:
         if getattr(config, name) <= 0:
@@ -322,6 +336,12 @@ def _validate(config: Config) -> None:
         raise ConfigError(
             f"update_graph = {config.update_graph!r} captures the update itself: leave "
             "compile_update = false"
+        )
+    if config.concurrency == "actor-learner" and config.update_graph != "off":
+        raise ConfigError(
+            f"update_graph = {config.update_graph!r} captures the update while the actor's "
+            'thread would run on the same GPU: with concurrency = "actor-learner" leave '
+            'update_graph = "off"'
         )
     _validate_parts(config)
     _validate_env_arguments(config)
@@ -394,7 +414,7 @@ ADDED_WITH_DEFAULTS = (
     "distributional_v_max", "loss", "dueling", "noisy", "noisy_sigma0", "torso",
     "replay_sampling", "priority_exponent", "priority_epsilon", "importance_exponent_start",
     "max_gradient_norm", "policy", "env_kwargs", "env_wrappers", "observation_images",
-    "update_graph", "num_envs",
+    "update_graph", "num_envs", "concurrency", "actor_refresh_updates",
 )  # fmt: skip
 
 

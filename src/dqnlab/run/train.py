@@ -32,10 +32,11 @@ from dqnlab.config import Config, config_fingerprint
 from dqnlab.errors import DqnlabError
 from dqnlab.run import rundir
 from dqnlab.run.checkpoints import CheckpointStore
+from dqnlab.run.concurrent import training_state
 from dqnlab.run.lease import RunLease
 from dqnlab.run.logs import RunLogger
 from dqnlab.run.play import EvaluationResult
-from dqnlab.run.state import FinishedGame, TrainingState, check_disk
+from dqnlab.run.state import FinishedGame, check_disk
 from dqnlab.run.wandb_log import WandbLog, import_wandb, uses_wandb
 
 PROGRESS_PERIOD_STEPS = 1000  # NaN checks, TensorBoard scalars and the progress bar
@@ -138,7 +139,7 @@ class TrainingLoop:
             import_wandb()  # without the extra, one line now, before anything is built
         self.run_dir = run_dir
         self.lease = lease
-        self.state = TrainingState(config, device)
+        self.state = training_state(config, device)
         # The network `auto` chose, written out where it is one of the newer kinds.
         if resume:
             config = rundir.with_recorded_network(config, rundir.load_run_config(run_dir))
