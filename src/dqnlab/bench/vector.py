@@ -22,8 +22,8 @@ import torch
 from dqnlab.algorithm.replay import ReplayMemory
 from dqnlab.bench.measure import machine_figures, measure_training
 from dqnlab.config import resolve_config
-from dqnlab.errors import ConfigError
 from dqnlab.config.settings import CHOICES
+from dqnlab.errors import ConfigError
 from dqnlab.run.concurrent import training_state
 from dqnlab.run.state import TrainingState
 
