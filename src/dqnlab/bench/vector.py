@@ -54,6 +54,12 @@ def row_key(count: int, concurrency: str) -> str:
     return f"num_envs_{count}{suffix}"
 
 
+def _whole_rounds(steps: int, count: int) -> int:
+    """`steps` rounded up to whole rounds of `count` agent steps: an actor thread acts a
+    whole round ahead (only the budget's last may be short)."""
+    return -(-steps // count) * count
+
+
 def _fill(replay: ReplayMemory, rng: np.random.Generator) -> None:
     """Every stream's slots written with distinct-looking frames (a cycled pool of random
     ones), the streams in turn as a vector step writes them."""
@@ -94,13 +100,15 @@ def measure_num_envs(
             state = training_state(config, device)
             _fill(state.replay, np.random.default_rng(seed))
             state.steps = config.replay_start_steps + config.epsilon_decay_steps
-            measure_training(state, 100)  # warm-up
+            measure_training(state, _whole_rounds(100, count))  # warm-up
             states[row_key(count, mode)] = state
     runs: dict[str, list[float]] = {key: [] for key in states}
     parts: dict[str, list[dict[str, float]]] = {key: [] for key in states}
     for _ in range(rounds):
         for key, state in states.items():
-            frames_per_second, shares = measure_training(state, steps)
+            frames_per_second, shares = measure_training(
+                state, _whole_rounds(steps, len(state.envs))
+            )
             if "wait" in state.seconds:
                 shares["learner_waiting"] = state.seconds["wait"] / state.seconds["total"]
             runs[key].append(frames_per_second)
