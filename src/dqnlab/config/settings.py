@@ -216,13 +216,13 @@ class Config:
         "none: act, store, learn in turn (Nature, the Lua code); actor-learner: a thread steps "
         "the environments with a copy of the online network refreshed every "
         "actor_refresh_updates updates while the learner updates; the replay ratio is held "
-        '(docs/benchmark.md, "Acting while learning")',
+        '(docs/benchmark.md, "Acting while learning"; not with update_graph = cuda)',
     )
     actor_refresh_updates: int = _setting(
         4,
-        "actor-learner: the actor's network is the online network after the last update "
-        "whose number is a multiple of this and at least this many updates old (so K to "
-        "2K - 1 updates behind the learner's)",
+        "K, for actor-learner: the actor acts with the online network as it was after the "
+        "last update whose number is a multiple of K and that is at least K updates old: "
+        "K to 2K - 1 updates behind the sequential loop's",
     )
     # Checkpoints (the whole training state; a killed run resumes exactly).
     checkpoint_period_minutes: float = _setting(
