@@ -188,7 +188,7 @@ def _worker(
             connection.send_bytes(b"")
 
 
-def _process_context() -> multiprocessing.context.BaseContext:
+def process_context() -> multiprocessing.context.BaseContext:
     """Workers forked from a fresh server process that has imported this module once.
 
     Plain fork would copy the player's thread pools (torch, OpenCV) into a process that
@@ -224,7 +224,7 @@ class EnvWorkers:
         layout: Layout,
         workers: int,
     ) -> None:
-        context = _process_context()
+        context = process_context()
         self.buffers = {
             name: context.RawArray("B", _nbytes(shape, dtype))
             for name, (shape, dtype) in layout.items()
