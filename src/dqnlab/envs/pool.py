@@ -268,7 +268,9 @@ class EnvWorkers:
 
     def _send(self, command: bytes) -> None:
         for connection in self.connections:
-            connection.send_bytes(command)
+            # A worker that failed sent its error and closed its end: `wait` reports it.
+            with contextlib.suppress(BrokenPipeError):
+                connection.send_bytes(command)
 
     def wait(self) -> None:
         """Wait for the oldest submitted command to be done by every worker."""
