@@ -12,7 +12,7 @@ environment of its own, both seeded from the run's seed and the step
 the worker count, or a resume in between; training no longer shares its generator, so
 its trajectory differs from an inline run's.
 
-Results are handed back in step order (`ready`). A checkpoint does not wait for them:
+Results are recorded in step order (`record_done`). A checkpoint does not wait for them:
 it saves the evaluations still pending (their step, training frames, held-out figures
 and the snapshot's weights, `state_dict`), and a resumed run plays them again.
 """
