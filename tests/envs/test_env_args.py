@@ -11,6 +11,7 @@ from pathlib import Path
 import gymnasium as gym
 import numpy as np
 import pytest
+from gymnasium.envs import registration
 
 from dqnlab import envs
 from dqnlab.config import Config, resolve_config
@@ -286,6 +287,7 @@ def test_an_id_still_missing_names_close_matches_and_where_it_looked() -> None:
         "DqnlabBroken = dqnlab_test_plugin:broken failed: RuntimeError('this plugin is" in message
     )
     assert "\n" not in message
+    assert registration.current_namespace is None  # ids registered later keep their names
 
 
 def test_without_entry_points_the_message_says_so(monkeypatch: pytest.MonkeyPatch) -> None:

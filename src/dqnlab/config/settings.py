@@ -181,6 +181,20 @@ class Config:
         "the first quarter; bounded disk) or all (also one per periodic evaluation, ~6.7 MB "
         "each for Atari: 1.3 GB per 50M-step run)",
     )
+    periodic_eval: str = _setting(
+        "inline",
+        "inline: each periodic evaluation pauses training and draws from the agent's own "
+        "generator, as the Lua code did; background: worker processes play a snapshot of the "
+        "online network while training goes on, each evaluation with a generator and an "
+        "environment seeded from the run's seed and its step (the scores are as meaningful; "
+        "training's draws, no longer shared, differ from an inline run's)",
+    )
+    periodic_eval_workers: int = _setting(
+        1,
+        "Processes playing background periodic evaluations, one torch thread each (more "
+        "where one evaluation outlasts an evaluation period of training; 0: played on the "
+        "training thread in turn, the same results)",
+    )
     # Budget.
     total_steps: int = _setting(50_000_000, "Training budget in agent steps")
     # Speed (no change of results beyond float rounding).
@@ -273,6 +287,7 @@ CHOICES: dict[str, tuple[str, ...]] = {
     "distributional": ("none", "c51"),
     "replay_sampling": ("uniform", "prioritized"),
     "concurrency": ("none", "actor-learner"),
+    "periodic_eval": ("inline", "background"),
 }
 # Settings that take one of `CHOICES` or the `module:Name` of a user's own part.
 USER_PARTS: dict[str, tuple[str, ...]] = {
@@ -307,7 +322,7 @@ def _validate(config: Config) -> None:
         "seed", "noop_max_frames", "max_episode_frames", "reward_clip", "td_error_clip",
         "epsilon_decay_steps", "eval_max_episode_frames", "final_eval_max_episode_frames",
         "checkpoint_period_steps", "heldout_transitions", "priority_epsilon",
-        "priority_exponent", "max_gradient_norm",
+        "priority_exponent", "max_gradient_norm", "periodic_eval_workers",
     )  # fmt: skip
     for name in non_negative:
         if getattr(config, name) < 0:
@@ -345,6 +360,7 @@ def _validate(config: Config) -> None:
         )
     _validate_parts(config)
     _validate_env_arguments(config)
+    _validate_periodic_eval(config)
     if any(width <= 0 for width in config.mlp_hidden_sizes):
         raise ConfigError(f"mlp_hidden_sizes = {list(config.mlp_hidden_sizes)} must be positive")
     # W&B would refuse such a project name, but only once the run has started.
@@ -369,6 +385,21 @@ def _validate_env_arguments(config: Config) -> None:
             raise ConfigError(f"env_wrappers: {wrapper!r} is not module:callable")
     if "render_mode" in config.env_kwargs:  # videos ask for frames through it
         raise ConfigError("env_kwargs: render_mode is dqnlab's to set (videos); leave it out")
+
+
+def _validate_periodic_eval(config: Config) -> None:
+    if config.periodic_eval == "inline" and config.periodic_eval_workers != 1:
+        raise ConfigError(
+            f"periodic_eval_workers = {config.periodic_eval_workers} is for periodic_eval = "
+            "'background'; an inline evaluation plays on the training thread"
+        )
+    # W&B takes each step once and never one earlier than its last: a result that arrives
+    # after later steps were logged would be dropped.
+    if config.periodic_eval == "background" and config.logger != "tensorboard":
+        raise ConfigError(
+            f"periodic_eval = 'background' logs each evaluation after later training steps, "
+            f"which logger = {config.logger!r} (W&B) refuses: use periodic_eval = 'inline'"
+        )
 
 
 def _validate_parts(config: Config) -> None:
@@ -402,7 +433,7 @@ RESUMABLE_CHANGES = (
     "logger", "wandb_project",
     "total_steps", "compile_update", "checkpoint_period_minutes", "checkpoint_period_steps",
     "checkpoints_kept", "on_checkpoint_error", "eval_networks_kept", "replay_storage",
-    "replay_compression", "heldout_transitions", "update_graph",
+    "replay_compression", "heldout_transitions", "update_graph", "periodic_eval_workers",
 )  # fmt: skip
 
 
@@ -414,7 +445,7 @@ ADDED_WITH_DEFAULTS = (
     "distributional_v_max", "loss", "dueling", "noisy", "noisy_sigma0", "torso",
     "replay_sampling", "priority_exponent", "priority_epsilon", "importance_exponent_start",
     "max_gradient_norm", "policy", "env_kwargs", "env_wrappers", "observation_images",
-    "update_graph", "num_envs", "concurrency", "actor_refresh_updates",
+    "update_graph", "num_envs", "concurrency", "actor_refresh_updates", "periodic_eval",
 )  # fmt: skip
 
 

@@ -188,7 +188,7 @@ def _worker(
             connection.send_bytes(b"")
 
 
-def _process_context() -> multiprocessing.context.BaseContext:
+def process_context() -> multiprocessing.context.BaseContext:
     """Workers forked from a fresh server process that has imported this module once.
 
     Plain fork would copy the player's thread pools (torch, OpenCV) into a process that
@@ -224,7 +224,7 @@ class EnvWorkers:
         layout: Layout,
         workers: int,
     ) -> None:
-        context = _process_context()
+        context = process_context()
         self.buffers = {
             name: context.RawArray("B", _nbytes(shape, dtype))
             for name, (shape, dtype) in layout.items()
@@ -268,7 +268,9 @@ class EnvWorkers:
 
     def _send(self, command: bytes) -> None:
         for connection in self.connections:
-            connection.send_bytes(command)
+            # A worker that failed sent its error and closed its end: `wait` reports it.
+            with contextlib.suppress(BrokenPipeError):
+                connection.send_bytes(command)
 
     def wait(self) -> None:
         """Wait for the oldest submitted command to be done by every worker."""

@@ -12,11 +12,12 @@ from __future__ import annotations
 
 import contextlib
 import difflib
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from importlib import metadata
 
 import gymnasium as gym
-from gymnasium.envs.registration import namespace, parse_env_id
+from gymnasium.envs import registration
+from gymnasium.envs.registration import parse_env_id
 
 from dqnlab.envs.atari import game_names
 
@@ -44,6 +45,19 @@ def _source(entry_point: metadata.EntryPoint) -> str:
     return dist.name if dist is not None else entry_point.module
 
 
+@contextlib.contextmanager
+def _namespace(name: str) -> Iterator[None]:
+    """Gymnasium's `registration.namespace`, but restored also when an entry point raises
+    (Gymnasium 1.x's is not: every id registered later in the process would get the
+    broken plugin's namespace)."""
+    before = registration.current_namespace
+    registration.current_namespace = name
+    try:
+        yield
+    finally:
+        registration.current_namespace = before
+
+
 def load_entry_points(env_id: str) -> tuple[list[str], list[str]]:
     """Load the `gymnasium.envs` entry points that may register `env_id`: those named
     after its namespace, or, when none is, every one not loaded yet. Returns the sources
@@ -62,7 +76,7 @@ def load_entry_points(env_id: str) -> tuple[list[str], list[str]]:
         scope = (
             contextlib.nullcontext()
             if entry_point.name in ROOT_NAMESPACES
-            else namespace(entry_point.name)
+            else _namespace(entry_point.name)
         )
         try:
             with scope:

@@ -121,7 +121,7 @@ def default_num_envs(episodes: int) -> int:
 
 
 @contextlib.contextmanager
-def _torch_threads(count: int) -> Iterator[None]:
+def torch_threads(count: int) -> Iterator[None]:
     before = torch.get_num_threads()
     torch.set_num_threads(count)
     try:
@@ -195,7 +195,7 @@ def play_games(
         stepper = EnvGroup(
             config, max_episode_frames, range(num_envs), seeds, games, batches, lockstep
         )
-    with stepper, _torch_threads(threads):
+    with stepper, torch_threads(threads):
         result = _lockstep_play(agent, stepper, acting, epsilon, episodes, max_steps)
     result.num_envs, result.workers = num_envs, workers
     return result

@@ -33,6 +33,11 @@ class RunLogger:
     Rows and events logged after it (by the run that was killed) are dropped, since the
     resumed run logs them again: no duplicates, no gaps. W&B cannot drop steps:
     `wandb_log` sends only those W&B does not hold yet (`wandb_log.WandbLog`).
+    `evaluations_resume_step`, where given, is evaluations.csv's instead: the rows of the
+    evaluations the checkpoint left playing in the background (`background_eval`) are
+    dropped too, since they come back again. (TensorBoard purges by step for all tags at
+    once, so the events of such an evaluation recorded after the checkpoint by the killed
+    run stay beside the resumed run's: the same step and values, twice.)
     """
 
     def __init__(
@@ -41,17 +46,25 @@ class RunLogger:
         tensorboard: bool = True,
         resume_step: int | None = None,
         wandb_log: WandbLog | None = None,
+        evaluations_resume_step: int | None = None,
     ) -> None:
         self.run_dir = run_dir
         self._files = {}
         self._writers = {}
+        if evaluations_resume_step is None:
+            evaluations_resume_step = resume_step
         files = (
-            ("episodes", rundir.episodes_path(run_dir), EPISODE_FIELDS),
-            ("evaluations", rundir.evaluations_path(run_dir), EVALUATION_FIELDS),
+            ("episodes", rundir.episodes_path(run_dir), EPISODE_FIELDS, resume_step),
+            (
+                "evaluations",
+                rundir.evaluations_path(run_dir),
+                EVALUATION_FIELDS,
+                evaluations_resume_step,
+            ),
         )
-        for name, path, fields in files:
-            if resume_step is not None and path.exists():
-                _truncate_after(path, resume_step)
+        for name, path, fields, kept_up_to in files:
+            if kept_up_to is not None and path.exists():
+                _truncate_after(path, kept_up_to)
             if path.exists():
                 _extend_header(path, fields)
             new = not path.exists()

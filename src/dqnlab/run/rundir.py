@@ -256,19 +256,20 @@ def network_payload(
     observation_dtype: np.dtype,
     action_names: Sequence[str],
     step: int,
-    network: torch.nn.Module,
+    network: torch.nn.Module | dict[str, torch.Tensor],
     eval_mean: float | None = None,
     layout: ObservationLayout | None = None,
 ) -> dict[str, Any]:
-    """What a network file holds: the network and everything needed to play it (with
-    the observation's layout when it is not a single frame: `envs/spaces.py`)."""
+    """What a network file holds: the network (a module, or its state dict: a snapshot)
+    and everything needed to play it (with the observation's layout when it is not a
+    single frame: `envs/spaces.py`)."""
     payload = {
         "config": config.to_dict(),
         "input_shape": tuple(input_shape),
         "observation_dtype": np.dtype(observation_dtype).str,
         "action_names": list(action_names),
         "step": step,
-        "network": network.state_dict(),
+        "network": network if isinstance(network, dict) else network.state_dict(),
     }
     if eval_mean is not None:
         payload["eval_mean"] = eval_mean

@@ -4,6 +4,7 @@ around them, each in a method of its own, what a run does besides learning.
     for every step:      advance the algorithm one agent step (one per environment)
     a game ended:        log its raw score                               (_end_game)
     every eval period:   evaluate; keep the best, worst, evaluated nets  (_evaluate)
+                         (or submit it to `background_eval`, recorded when it returns)
     every 1,000 steps:   check for NaN, log loss and frames/s, progress  (_report_progress)
     when due:            write a complete training checkpoint            (_checkpoint)
     on SIGINT/SIGTERM:   checkpoint, then stop                           (StopRequests)
@@ -14,6 +15,7 @@ advance whose steps cross one of its multiples, at the step the advance ended on
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import signal
 import threading
@@ -28,9 +30,11 @@ import torch
 from tqdm import tqdm
 
 from dqnlab.algorithm.agent import epsilon_at, recorded_network
+from dqnlab.algorithm.heldout import HeldOutStatistics
 from dqnlab.config import Config, config_fingerprint
 from dqnlab.errors import DqnlabError
 from dqnlab.run import rundir
+from dqnlab.run.background_eval import BackgroundEvaluations, NetworkState
 from dqnlab.run.checkpoints import CheckpointStore
 from dqnlab.run.concurrent import training_state
 from dqnlab.run.lease import RunLease
@@ -149,8 +153,9 @@ class TrainingLoop:
         self.store = CheckpointStore(run_dir, keep=config.checkpoints_kept)
         self.fingerprint = config_fingerprint(config)
         self.progress = RunProgress()
+        pending: list[dict[str, Any]] = []  # evaluations a checkpoint left in flight
         if resume:
-            self._restore(device)
+            pending = self._restore(device)
         else:
             rundir.write_run_config(run_dir, config)
         check_disk(run_dir, self.state.replay)
@@ -159,6 +164,7 @@ class TrainingLoop:
             run_dir,
             tensorboard=tensorboard,
             resume_step=resume_step,
+            evaluations_resume_step=pending[0]["step"] - 1 if pending else None,
             wandb_log=WandbLog(run_dir, config, resume_step) if uses_wandb(config) else None,
         )
         frames = self.state.frames
@@ -174,11 +180,17 @@ class TrainingLoop:
         )  # fmt: skip
         evaluations = self.progress.evaluations
         self.last_eval_text = f"{evaluations[-1][1]:.1f}" if evaluations else "-"
+        self.background: BackgroundEvaluations | None = None
+        if config.periodic_eval == "background":
+            self.background = BackgroundEvaluations(
+                config, self._network_payload, self._record_evaluation, config.periodic_eval_workers
+            )
+            self.background.resubmit(pending)
 
     def run(self) -> TrainResult:
         config, state = self.config, self.state
         interrupted = None
-        with StopRequests() as stop:
+        with StopRequests() as stop, self.background or contextlib.nullcontext():
             while state.steps < config.total_steps:
                 first, remaining = state.steps + 1, config.total_steps - state.steps
                 # The last advance steps only the environments the budget has room for.
@@ -189,6 +201,8 @@ class TrainingLoop:
                 evaluated = self._crosses(first, step, config.eval_period_steps, after=True)
                 if evaluated:
                     self._evaluate(step)
+                if self.background is not None and self.background.pending:
+                    self.background.record_done()
                 if self._crosses(first, step, PROGRESS_PERIOD_STEPS):
                     self._report_progress(step)
                 if first <= config.replay_start_steps <= step:
@@ -199,6 +213,11 @@ class TrainingLoop:
                     interrupted = stop.signal_name
                     break
                 self.logger.keep_fresh()
+            if interrupted is None and self.background is not None and self.background.pending:
+                # The last checkpoint holds them as pending: a stop ends the wait.
+                if self.background.record_all(lambda: stop.signal_name is not None):
+                    self._checkpoint(state.steps)
+                interrupted = stop.signal_name
         return self._finish(interrupted)
 
     # Phases --------------------------------------------------------------------------
@@ -230,12 +249,28 @@ class TrainingLoop:
         """A periodic evaluation: its mean decides the best network, and the networks kept
         for inspection (`rundir.keep_evaluated_network`)."""
         self.logger.keep_fresh(at_once=True)
-        self.state.check_finite()
-        result = self.state.evaluate()
-        heldout = self.state.heldout_statistics()
+        state = self.state
+        state.check_finite()
+        if self.background is not None:  # recorded when it comes back
+            heldout = state.heldout_statistics()
+            self.background.submit(step, state.frames, state.agent.online, heldout)
+            return
+        result = state.evaluate()
+        heldout = state.heldout_statistics()
+        self._record_evaluation(step, state.frames, result, heldout, state.agent.online)
+
+    def _record_evaluation(
+        self,
+        step: int,
+        frames: int,
+        result: EvaluationResult,
+        heldout: HeldOutStatistics | None,
+        network: torch.nn.Module | NetworkState,
+    ) -> None:
+        """An evaluation's result, whichever way it was played."""
         mean = _periodic_mean(result)
         progress = self.progress
-        payload = self._network_payload(step, mean)
+        payload = self._network_payload(step, mean, network)
         if mean > progress.best_mean:
             progress.best_mean = mean
             rundir.save_network(rundir.network_path(self.run_dir, "best"), payload)
@@ -246,7 +281,7 @@ class TrainingLoop:
         self.logger.evaluation(
             {
                 "step": step,
-                "frames": self.state.frames,
+                "frames": frames,
                 "mean": mean,
                 "std": result.std,
                 "episodes": len(result.scores),
@@ -308,7 +343,12 @@ class TrainingLoop:
         self.logger.flush()
         changed = replay.written_since(self.saved_mark)
         # "learner": the key of the training state in checkpoints written since the first.
-        saved = {"learner": state.state_dict(), "run": dataclasses.asdict(self.progress)}
+        saved: dict[str, Any] = {
+            "learner": state.state_dict(),
+            "run": dataclasses.asdict(self.progress),
+        }
+        if self.background is not None:  # played again by a resumed run
+            saved["pending_evaluations"] = self.background.state_dict()
         try:
             self.store.save(step, saved, replay.arrays, changed, self.fingerprint)
             rundir.save_network(
@@ -323,14 +363,17 @@ class TrainingLoop:
         self.saved_mark = replay.mark()
         self.saved_time = time.monotonic()
 
-    def _restore(self, device: torch.device) -> None:
-        """Carry on from the newest complete checkpoint, if there is one."""
+    def _restore(self, device: torch.device) -> list[dict[str, Any]]:
+        """Carry on from the newest complete checkpoint, if there is one; returns the
+        background evaluations it left pending."""
         replay = self.state.replay
         loaded = self.store.latest(self.fingerprint, into=replay.arrays, map_location=device)
         replay.upload()
         if loaded is not None:
             self.state.load_state_dict(loaded.state["learner"])
             self.progress = RunProgress(**loaded.state["run"])
+            return list(loaded.state.get("pending_evaluations", []))
+        return []
 
     def _finish(self, interrupted: str | None) -> TrainResult:
         state = self.state
@@ -358,7 +401,13 @@ class TrainingLoop:
             interrupted=interrupted,
         )
 
-    def _network_payload(self, step: int, eval_mean: float | None = None) -> dict[str, Any]:
+    def _network_payload(
+        self,
+        step: int,
+        eval_mean: float | None = None,
+        network: torch.nn.Module | NetworkState | None = None,
+    ) -> dict[str, Any]:
+        """A network file: of the online network, or of `network` (a snapshot)."""
         env = self.state.env
         return rundir.network_payload(
             self.config,
@@ -366,7 +415,7 @@ class TrainingLoop:
             env.observation_dtype,
             env.action_names,
             step,
-            self.state.agent.online,
+            self.state.agent.online if network is None else network,
             eval_mean,
             self.state.agent.observation_layout,
         )
