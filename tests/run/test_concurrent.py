@@ -227,12 +227,19 @@ RESUMED = {
     "one env": [*CARTPOLE, *AL],
     "three envs": [*CARTPOLE, *AL, "--set", "num_envs=3", "--steps", "3001",
                    "--set", "replay_capacity=2100"],
+    # Both ways off the training thread at once: the actor, and the periodic evaluation
+    # in a worker process (its results pending in the checkpoints the kills fall on).
+    "background evaluations": [*CARTPOLE, *AL, "--set", "periodic_eval=background"],
 }  # fmt: skip
 
 
 def assert_same_run(reference: Path, resumed: Path) -> None:
     state_a, replay_a = final_state(reference)
     state_b, replay_b = final_state(resumed)
+    if 'periodic_eval = "background"' in (reference / "config.toml").read_text():
+        # Background evaluations play on environments of their own: the training process's
+        # evaluation environment is never reset, so its state is not the run's.
+        del state_a["learner"]["eval_env"], state_b["learner"]["eval_env"]
     assert_identical(state_a["learner"], state_b["learner"], "learner")
     assert_identical(state_a["run"], state_b["run"], "run")
     assert_identical(replay_a, replay_b, "replay")
