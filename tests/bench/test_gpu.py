@@ -29,6 +29,9 @@ def test_the_script_end_to_end_on_cpu_quick(tmp_path: Path) -> None:
     for count in gpu.VECTOR_ENVS:  # measured on CPU too: never a failure, never skipped
         entry = figures[f"num_envs_{count}"]
         assert isinstance(entry, dict) and entry["frames_per_second"] > 0, entry
+    acting = figures[f"num_envs_{gpu.ACTOR_LEARNER_ENVS}_actor_learner"]
+    assert isinstance(acting, dict) and acting["frames_per_second"] > 0, acting
+    assert acting["concurrency"] == "actor-learner" and acting["updates"] > 0
 
 
 def test_the_command_line_writes_the_same_file(tmp_path: Path, monkeypatch) -> None:  # noqa: ANN001

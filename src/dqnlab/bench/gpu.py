@@ -4,7 +4,9 @@
 Figures: the machine; the update's milliseconds eager and as a CUDA graph
 (`update_graph`); training frames/s of the exact loop (nature preset, frames on the device,
 after replay start, epsilon at its final 0.1) eager and with the graph; the same with
-N = 8, 16, 32 environments (`num_envs`); and a check that one
+N = 8, 16, 32 environments (`num_envs`), and N = 16 with an actor thread (`concurrency =
+"actor-learner"`, the issue's 10,000 frames/s target; eager, which that mode needs); and a
+check that one
 update on the GPU gives the CPU's weights within float tolerance, from the same weights on
 the same minibatch. Sized to take under 8 minutes on one H100/H200 with 16 cores;
 `quick` on CPU takes seconds (the CUDA-only entries then say "skipped: no CUDA").
@@ -31,10 +33,12 @@ from dqnlab.algorithm.agent import Agent
 from dqnlab.algorithm.replay import ReplayMemory
 from dqnlab.bench.measure import machine_figures, measure_training
 from dqnlab.config import Config, resolve_config
+from dqnlab.run.concurrent import training_state
 from dqnlab.run.state import TrainingState, replay_device
 
 NO_CUDA = "skipped: no CUDA"
 VECTOR_ENVS = (8, 16, 32)
+ACTOR_LEARNER_ENVS = 16
 BUDGET_SECONDS = 7 * 60  # sections not yet begun by then are skipped (the target is 8 min)
 # The same minibatch from the same weights: float32 on both, TF32 off for the check. The
 # gradient's sums run in another order on the GPU (cuDNN's convolution algorithms), so the
@@ -90,6 +94,10 @@ def run_gpu_benchmark(
             vector_loop, device, env, seed, num_envs, sizes, graph_modes[-1]
         )
         sections.append((f"num_envs_{num_envs}", measure))
+    sections.append((
+        f"num_envs_{ACTOR_LEARNER_ENVS}_actor_learner",
+        partial(vector_loop, device, env, seed, ACTOR_LEARNER_ENVS, sizes, "off", "actor-learner"),
+    ))  # fmt: skip
     for name, measure in sections:
         if time.perf_counter() - started > BUDGET_SECONDS:
             figures[name] = "skipped: the time budget was spent"
@@ -147,7 +155,7 @@ def filled_state(config: Config, device: torch.device) -> TrainingState:
     streams = config.num_envs  # one ring per environment, written in turn as a vector step does
     for i in range(config.replay_capacity):
         replay.add(pool[i % 64], i % 4, float(i % 3 - 1), i % 500 == 499, i % streams)
-    return TrainingState(config, device, replay=replay)
+    return training_state(config, device, replay=replay)
 
 
 def synchronize(device: torch.device) -> None:
@@ -192,19 +200,31 @@ def exact_loop(
 
 
 def vector_loop(
-    device: torch.device, env: str, seed: int, num_envs: int, sizes: Sizes, update_graph: str
+    device: torch.device,
+    env: str,
+    seed: int,
+    num_envs: int,
+    sizes: Sizes,
+    update_graph: str,
+    concurrency: str = "none",
 ) -> dict[str, Any] | str:
-    """Frames/s with `num_envs` environments acting as one batch (`num_envs`)."""
-    config = nature_config(env, seed, sizes.replay_capacity, update_graph, num_envs=num_envs)
+    """Frames/s with `num_envs` environments acting as one batch (`num_envs`), stepped
+    by the training thread or by an actor thread (`concurrency`)."""
+    config = nature_config(
+        env, seed, sizes.replay_capacity, update_graph, num_envs=num_envs, concurrency=concurrency
+    )
     state = filled_state(config, device)
     figures = _training_figures(state, sizes.vector_steps)
     figures["update_graph"] = update_graph
+    figures["concurrency"] = concurrency
     return figures
 
 
 def _training_figures(state: TrainingState, steps: int) -> dict[str, Any]:
     config = state.config
     state.steps = config.replay_start_steps + config.epsilon_decay_steps  # epsilon 0.1
+    # Whole rounds of all the environments: an actor thread acts a round at a time.
+    steps = -(-steps // len(state.envs)) * len(state.envs)
     for _ in range(min(100, steps)):
         state.advance()
     frames_per_second, split = measure_training(state, steps)
