@@ -20,7 +20,6 @@ import torch
 from dqnlab.algorithm.agent import Agent
 from dqnlab.config import Config, resolve_config
 from dqnlab.errors import ConfigError
-from dqnlab.run.checkpoints import CheckpointStore
 from dqnlab.run.concurrent import ActorLearnerState, actor_seed
 from dqnlab.run.state import FinishedGame, TrainingState
 from tests.run.test_resume import (
@@ -29,6 +28,7 @@ from tests.run.test_resume import (
     csv_rows,
     dqnlab,
     finish,
+    train_killed_and_resumed,
     wait_for_checkpoint,
 )
 from tests.run.test_vector_resume import final_state
@@ -252,22 +252,7 @@ def assert_same_run(reference: Path, resumed: Path) -> None:
 def test_a_killed_actor_learner_run_resumes_bit_for_bit(tmp_path: Path, name: str) -> None:
     args = RESUMED[name]
     reference, resumed = tmp_path / "reference", tmp_path / "resumed"
-    code, stderr = finish(dqnlab("train", *args, "--run-dir", str(reference)))
-    assert code == 0, stderr
-    rng = random.Random(len(args))
-    process = dqnlab("train", *args, "--run-dir", str(resumed))
-    kills, last_step = 0, 0
-    while kills < 2:
-        if not wait_for_checkpoint(resumed, process, after=last_step):
-            break
-        time.sleep(rng.uniform(0.0, 0.5))
-        process.send_signal(signal.SIGKILL)
-        process.wait()
-        kills += 1
-        last_step = CheckpointStore(resumed).steps()[-1]
-        process = dqnlab("resume", str(resumed), "--no-progress", "--device", "cpu")
-    code, stderr = finish(process)
-    assert code == 0, stderr
+    kills = train_killed_and_resumed(args, reference, resumed, most_kills=2, latest_kill=0.5)
     assert kills >= 1, "the run was too fast to be killed"
     assert_same_run(reference, resumed)
 

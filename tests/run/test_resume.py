@@ -70,6 +70,31 @@ def finish(process: subprocess.Popen[str]) -> tuple[int, str]:
     return process.returncode, stderr
 
 
+def train_killed_and_resumed(
+    args: list[str], reference: Path, resumed: Path, most_kills: int, latest_kill: float = 0.6
+) -> int:
+    """Train `args` into `reference` left alone, and into `resumed` SIGKILLed up to
+    `most_kills` times, each at a random moment up to `latest_kill` seconds after a new
+    checkpoint, then resumed; returns the kills (fewer when the run finished first)."""
+    code, stderr = finish(dqnlab("train", *args, "--run-dir", str(reference)))
+    assert code == 0, stderr
+    rng = random.Random(len(args))
+    process = dqnlab("train", *args, "--run-dir", str(resumed))
+    kills, last_step = 0, 0
+    while kills < most_kills:
+        if not wait_for_checkpoint(resumed, process, after=last_step):
+            break  # the run finished before the next kill
+        time.sleep(rng.uniform(0.0, latest_kill))
+        process.send_signal(signal.SIGKILL)
+        process.wait()
+        kills += 1
+        last_step = CheckpointStore(resumed).steps()[-1]
+        process = dqnlab("resume", str(resumed), "--no-progress", "--device", "cpu")
+    code, stderr = finish(process)
+    assert code == 0, stderr
+    return kills
+
+
 def wait_for_checkpoint(run: Path, process: subprocess.Popen[str], after: int) -> bool:
     """Wait until a checkpoint newer than step `after` exists; False if the run ended."""
     store = CheckpointStore(run)
@@ -180,22 +205,7 @@ NESTED_DICT = [
 )
 def test_sigkill_at_random_moments_then_resume_is_bit_identical(tmp_path: Path, args) -> None:
     reference, resumed = tmp_path / "reference", tmp_path / "resumed"
-    code, stderr = finish(dqnlab("train", *args, "--run-dir", str(reference)))
-    assert code == 0, stderr
-    rng = random.Random(len(args))
-    process = dqnlab("train", *args, "--run-dir", str(resumed))
-    kills, last_step = 0, 0
-    while kills < 3:
-        if not wait_for_checkpoint(resumed, process, after=last_step):
-            break  # the run finished before the next kill
-        time.sleep(rng.uniform(0.0, 0.6))
-        process.send_signal(signal.SIGKILL)
-        process.wait()
-        kills += 1
-        last_step = CheckpointStore(resumed).steps()[-1]
-        process = dqnlab("resume", str(resumed), "--no-progress", "--device", "cpu")
-    code, stderr = finish(process)
-    assert code == 0, stderr
+    kills = train_killed_and_resumed(args, reference, resumed, most_kills=3)
     assert kills >= 2, "the run was too fast to be killed twice"
     assert_same_run(reference, resumed)
 

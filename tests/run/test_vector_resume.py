@@ -4,9 +4,7 @@ every environment's emulator state (test_resume.py does the same with one enviro
 
 from __future__ import annotations
 
-import random
 import signal
-import time
 from pathlib import Path
 
 import pytest
@@ -26,6 +24,7 @@ from tests.run.test_resume import (
     dqnlab,
     finish,
     tensorboard_steps,
+    train_killed_and_resumed,
     wait_for_checkpoint,
 )
 
@@ -67,22 +66,7 @@ def assert_same_run(reference: Path, resumed: Path) -> None:
 def test_three_environments_killed_and_resumed_are_bit_identical(tmp_path: Path, name) -> None:
     args = VARIANTS[name]
     reference, resumed = tmp_path / "reference", tmp_path / "resumed"
-    code, stderr = finish(dqnlab("train", *args, "--run-dir", str(reference)))
-    assert code == 0, stderr
-    rng = random.Random(len(args))
-    process = dqnlab("train", *args, "--run-dir", str(resumed))
-    kills, last_step = 0, 0
-    while kills < 2:
-        if not wait_for_checkpoint(resumed, process, after=last_step):
-            break
-        time.sleep(rng.uniform(0.0, 0.6))
-        process.send_signal(signal.SIGKILL)
-        process.wait()
-        kills += 1
-        last_step = CheckpointStore(resumed).steps()[-1]
-        process = dqnlab("resume", str(resumed), "--no-progress", "--device", "cpu")
-    code, stderr = finish(process)
-    assert code == 0, stderr
+    kills = train_killed_and_resumed(args, reference, resumed, most_kills=2)
     assert kills >= 1, "the run was too fast to be killed"
     assert_same_run(reference, resumed)
 
