@@ -31,7 +31,7 @@ import torch
 
 from dqnlab.algorithm.agent import Agent
 from dqnlab.algorithm.replay import ReplayMemory
-from dqnlab.bench.measure import machine_figures, measure_training
+from dqnlab.bench.measure import machine_figures, measure_training, whole_rounds
 from dqnlab.config import Config, resolve_config
 from dqnlab.run.concurrent import training_state
 from dqnlab.run.state import TrainingState, replay_device
@@ -223,8 +223,7 @@ def vector_loop(
 def _training_figures(state: TrainingState, steps: int) -> dict[str, Any]:
     config = state.config
     state.steps = config.replay_start_steps + config.epsilon_decay_steps  # epsilon 0.1
-    # Whole rounds of all the environments: an actor thread acts a round at a time.
-    steps = -(-steps // len(state.envs)) * len(state.envs)
+    steps = whole_rounds(steps, len(state.envs))
     for _ in range(min(100, steps)):
         state.advance()
     frames_per_second, split = measure_training(state, steps)

@@ -32,6 +32,12 @@ def machine_figures(device: torch.device) -> dict[str, Any]:
     }
 
 
+def whole_rounds(steps: int, count: int) -> int:
+    """`steps` rounded up to whole rounds of `count` agent steps: an actor thread acts a
+    whole round ahead (only the budget's last may be short)."""
+    return -(-steps // count) * count
+
+
 def measure_training(training: TrainingState, steps: int) -> tuple[float, dict[str, float]]:
     """Frames/s over `steps` agent steps (of all its environments together), and the
     fraction of time in each part."""

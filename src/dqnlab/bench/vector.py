@@ -20,7 +20,7 @@ import numpy as np
 import torch
 
 from dqnlab.algorithm.replay import ReplayMemory
-from dqnlab.bench.measure import machine_figures, measure_training
+from dqnlab.bench.measure import machine_figures, measure_training, whole_rounds
 from dqnlab.config import resolve_config
 from dqnlab.config.settings import CHOICES
 from dqnlab.errors import ConfigError
@@ -52,12 +52,6 @@ def row_key(count: int, concurrency: str) -> str:
     """The figures' prefix for N environments and a concurrency (none: the older keys)."""
     suffix = "" if concurrency == "none" else "_" + concurrency.replace("-", "_")
     return f"num_envs_{count}{suffix}"
-
-
-def _whole_rounds(steps: int, count: int) -> int:
-    """`steps` rounded up to whole rounds of `count` agent steps: an actor thread acts a
-    whole round ahead (only the budget's last may be short)."""
-    return -(-steps // count) * count
 
 
 def _fill(replay: ReplayMemory, rng: np.random.Generator) -> None:
@@ -100,14 +94,14 @@ def measure_num_envs(
             state = training_state(config, device)
             _fill(state.replay, np.random.default_rng(seed))
             state.steps = config.replay_start_steps + config.epsilon_decay_steps
-            measure_training(state, _whole_rounds(100, count))  # warm-up
+            measure_training(state, whole_rounds(100, count))  # warm-up
             states[row_key(count, mode)] = state
     runs: dict[str, list[float]] = {key: [] for key in states}
     parts: dict[str, list[dict[str, float]]] = {key: [] for key in states}
     for _ in range(rounds):
         for key, state in states.items():
             frames_per_second, shares = measure_training(
-                state, _whole_rounds(steps, len(state.envs))
+                state, whole_rounds(steps, len(state.envs))
             )
             if "wait" in state.seconds:
                 shares["learner_waiting"] = state.seconds["wait"] / state.seconds["total"]
