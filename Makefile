@@ -6,7 +6,7 @@ GAME ?= pong
 ARGS ?=
 
 .PHONY: install install-test train test test-slow lint format typecheck clean
-.PHONY: install-docs docs docs-serve bench-gpu
+.PHONY: install-docs docs docs-serve bench-gpu bench-table
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -63,6 +63,17 @@ docs-serve: install-docs
 # docs/benchmark.md). ARGS="--device cpu --quick" runs it on CPU in seconds.
 bench-gpu: install
 	$(BIN)/python -m dqnlab.bench.gpu --json bench-gpu.json $(ARGS)
+
+# Issue 22's CPU table in one command, into bench-table.json (about 15 minutes on 2 cores):
+# training frames/s with num_envs 1, 2, 4, 8, each sequential and with an actor thread,
+# Stable-Baselines3 and (CLEANRL=path/to/a/CleanRL/checkout) CleanRL's dqn_atari.py in the
+# same alternating rounds, the update against a matrix multiply, the stop checkpoint.
+CLEANRL ?=
+bench-table: install
+	$(BIN)/python -m pip install --quiet -e ".[bench]"
+	$(BIN)/dqnlab bench --num-envs 1,2,4,8 --concurrency none,actor-learner --peers \
+		--checkpoint --steps 1000 --replay-capacity 100000 --json bench-table.json \
+		$(if $(CLEANRL),--cleanrl $(CLEANRL)) $(ARGS)
 
 clean:
 	rm -rf $(VENV) build dist src/*.egg-info .pytest_cache .ruff_cache .mypy_cache

@@ -13,7 +13,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from dqnlab.bench import cleanrl, flops
+from dqnlab.bench import cleanrl, flops, vector
 from dqnlab.bench.cleanrl import (
     cleanrl_arguments,
     cleanrl_environment,
@@ -25,6 +25,7 @@ from dqnlab.bench.cleanrl import (
     run_cleanrl_dqn,
     venv_path,
 )
+from dqnlab.bench.table import format_table
 from dqnlab.bench.throughput import run_benchmark
 from dqnlab.config import resolve_config
 from dqnlab.errors import DqnlabError
@@ -208,6 +209,24 @@ def test_the_bench_alternates_cleanrl_with_dqnlab_and_gives_the_ratio(
     assert figures["train_ratio_vs_cleanrl_runs"] == pytest.approx(expected, rel=0.02)
     assert _as_dict(figures["cleanrl_settings"]["arguments"])["--env-id"] == "PongNoFrameskip-v4"
     assert "peer_train_frames_per_second" not in figures  # no --peers: SB3 not run
+
+
+def test_cleanrl_takes_its_turn_in_the_num_envs_rounds(
+    checkout: Path, venv: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setattr(flops, "MATMUL_SIZE", 256)
+    monkeypatch.setattr(vector, "UPDATE_REPLAY_SLOTS", 300)
+    figures = vector.measure_num_envs(
+        [1], env="pong", steps=8, replay_capacity=600, device=torch.device("cpu"),
+        rounds=2, cleanrl=prepare_cleanrl(checkout, venv), peer_learning_starts=100,
+    )  # fmt: skip
+    assert len(figures["cleanrl_train_frames_per_second_runs"]) == 2
+    ratio = (
+        figures["num_envs_1_train_frames_per_second"] / figures["cleanrl_train_frames_per_second"]
+    )
+    assert figures["num_envs_1_ratio_vs_cleanrl"] == pytest.approx(ratio)
+    assert _as_dict(figures["cleanrl_settings"]["arguments"])["--env-id"] == "PongNoFrameskip-v4"
+    assert "| CleanRL dqn_atari.py @ unknown | " in format_table(figures)
 
 
 def test_a_folder_without_the_script_is_one_line(tmp_path: Path, venv: Path) -> None:

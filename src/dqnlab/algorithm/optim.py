@@ -129,16 +129,34 @@ def _step_per_parameter(
     decay: float,
     eps: float,
 ) -> None:
-    for param, grad, grad_avg, square_avg in zip(
-        params, grads, grad_avgs, square_avgs, strict=True
-    ):
-        # Same operation order as the Lua code: g:mul(0.95):add(0.05, dw).
-        grad_avg.mul_(decay).add_(grad, alpha=1.0 - decay)
-        square_avg.mul_(decay).addcmul_(grad, grad, value=1.0 - decay)
-        # The one temporary per parameter: sqrt(g2 - g² + eps), eps inside.
-        denominator = torch.addcmul(square_avg, grad_avg, grad_avg, value=-1.0)
-        denominator.add_(eps).sqrt_()
-        param.addcdiv_(grad, denominator, value=-lr)
+    for tensors in zip(params, grads, grad_avgs, square_avgs, strict=True):
+        for param, grad, grad_avg, square_avg in _cache_sized_pieces(tensors):
+            # Same operation order as the Lua code: g:mul(0.95):add(0.05, dw).
+            grad_avg.mul_(decay).add_(grad, alpha=1.0 - decay)
+            square_avg.mul_(decay).addcmul_(grad, grad, value=1.0 - decay)
+            # The one temporary per piece: sqrt(g2 - g² + eps), eps inside.
+            denominator = torch.addcmul(square_avg, grad_avg, grad_avg, value=-1.0)
+            denominator.add_(eps).sqrt_()
+            param.addcdiv_(grad, denominator, value=-lr)
+
+
+# Elements per piece of a large parameter (1 MiB of float32 per tensor): the step's seven
+# passes over a piece's five tensors then run in the processor's L2 cache instead of
+# streaming the Nature CNN's 1.6M-weight layer from memory seven times (about a quarter
+# faster on a 2-core Xeon). Each element sees the same operations in the same order,
+# so the bits are the same (the `nature` pin test).
+_PIECE = 1 << 18
+
+
+def _cache_sized_pieces(
+    tensors: tuple[torch.Tensor, ...],
+) -> Iterable[tuple[torch.Tensor, ...]]:
+    """`tensors` (a parameter, its gradient and running averages) whole, or as flat views
+    of `_PIECE` elements when all are contiguous and larger than two pieces."""
+    if tensors[0].numel() <= 2 * _PIECE or not all(t.is_contiguous() for t in tensors):
+        return (tensors,)
+    flat = [t.view(-1) for t in tensors]
+    return zip(*(f.split(_PIECE) for f in flat), strict=True)
 
 
 def _step_foreach(

@@ -1,5 +1,5 @@
 """Timings the benchmarks share: the machine they ran on, training frames/s with the share
-of each timed part, and the median time to sample a minibatch."""
+of each timed part, and the median times of an update and of sampling a minibatch."""
 
 from __future__ import annotations
 
@@ -13,6 +13,8 @@ import psutil
 import torch
 
 from dqnlab import __version__
+from dqnlab.algorithm.agent import Agent
+from dqnlab.algorithm.minibatch import Batch
 from dqnlab.algorithm.replay import ReplayMemory
 from dqnlab.run.state import TIMED_PARTS, TrainingState
 
@@ -51,6 +53,19 @@ def measure_training(training: TrainingState, steps: int) -> tuple[float, dict[s
     parts = {name: training.seconds[name] / seconds for name in TIMED_PARTS}
     parts["other"] = 1.0 - sum(parts.values())  # the loop's own overhead
     return (training.frames - frames) / seconds, parts
+
+
+def median_update_ms(agent: Agent, batch: Batch, repeats: int = 50) -> float:
+    """The median time of `repeats` updates on one minibatch (after 5 not timed), each
+    waited for, in milliseconds."""
+    for _ in range(5):
+        agent.update(batch)
+    timings = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        agent.update(batch)[0].item()  # .item() waits for the device
+        timings.append(time.perf_counter() - start)
+    return float(np.median(timings) * 1e3)
 
 
 def median_sample_us(replay: ReplayMemory, repeats: int) -> float:

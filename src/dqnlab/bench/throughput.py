@@ -9,7 +9,6 @@ evaluation's (`play_games`, every core) and the periodic one's (`play`, one envi
 
 from __future__ import annotations
 
-import time
 from pathlib import Path
 from typing import Any
 
@@ -26,7 +25,12 @@ from dqnlab.bench.flops import (
     measure_matmul,
     update_flop_figures,
 )
-from dqnlab.bench.measure import machine_figures, measure_training, median_sample_us
+from dqnlab.bench.measure import (
+    machine_figures,
+    measure_training,
+    median_sample_us,
+    median_update_ms,
+)
 from dqnlab.bench.sb3 import peer_available, run_sb3_dqn
 from dqnlab.config import resolve_config
 from dqnlab.errors import DqnlabError
@@ -107,15 +111,7 @@ def run_benchmark(
     # The update alone, on one sampled minibatch.
     training = TrainingState(config, device, replay=replay)
     agent = training.agent
-    batch = replay.sample()
-    for _ in range(5):
-        agent.update(batch)
-    timings = []
-    for _ in range(update_repeats):
-        start = time.perf_counter()
-        agent.update(batch)[0].item()  # .item() waits for the device
-        timings.append(time.perf_counter() - start)
-    figures["update_ms"] = float(np.median(timings) * 1e3)
+    figures["update_ms"] = median_update_ms(agent, replay.sample(), update_repeats)
     # The limit the update is held against, measured now, on the same threads.
     matmul = measure_matmul(device)
     flop = agent_network_flops(agent).update(config.batch_size, config.target)

@@ -9,8 +9,9 @@ environments", says why not in worker processes). The update, one per 4 agent st
 the same work for any N. With `--concurrency none,actor-learner` each N is measured both
 ways: the actor thread's acting and emulator time then overlap the update, so the shares
 of the parts add up to more than 1, and `share_learner_waiting` is the learner's time
-waiting for the actor.
-"""
+waiting for the actor. With `--peers` and `--cleanrl DIR` Stable-Baselines3's and
+CleanRL's DQN take their turn in each round, so that one command gives issue 22's whole
+table (`table.py` prints it)."""
 
 from __future__ import annotations
 
@@ -20,12 +21,28 @@ import numpy as np
 import torch
 
 from dqnlab.algorithm.replay import ReplayMemory
-from dqnlab.bench.measure import machine_figures, measure_training, whole_rounds
-from dqnlab.config import resolve_config
+from dqnlab.bench.cleanrl import CleanRLPeer, run_cleanrl_dqn
+from dqnlab.bench.flops import (
+    agent_network_flops,
+    matmul_figures,
+    measure_matmul,
+    update_flop_figures,
+)
+from dqnlab.bench.measure import (
+    machine_figures,
+    measure_training,
+    median_update_ms,
+    whole_rounds,
+)
+from dqnlab.bench.sb3 import run_sb3_dqn
+from dqnlab.config import Config, resolve_config
 from dqnlab.config.settings import CHOICES
 from dqnlab.errors import ConfigError
 from dqnlab.run.concurrent import training_state
 from dqnlab.run.state import TrainingState
+
+# The replay the update is timed on: only its minibatch matters.
+UPDATE_REPLAY_SLOTS = 5_000
 
 
 def parse_counts(text: str) -> list[int]:
@@ -63,6 +80,53 @@ def _fill(replay: ReplayMemory, rng: np.random.Generator) -> None:
         replay.add(pool[i % 64], int(i % 4), float(i % 7 == 0), False, i % streams)
 
 
+def _states(
+    counts: list[int],
+    concurrency: tuple[str, ...],
+    env: str,
+    replay_capacity: int,
+    device: torch.device,
+    seed: int,
+) -> dict[str, TrainingState]:
+    """One training state per count and concurrency, filled, past the ε anneal, warmed up."""
+    states: dict[str, TrainingState] = {}
+    for count in counts:
+        for mode in concurrency:
+            config = _config(
+                env, seed, replay_capacity=replay_capacity, num_envs=count, concurrency=mode
+            )
+            state = training_state(config, device)
+            _fill(state.replay, np.random.default_rng(seed))
+            state.steps = config.replay_start_steps + config.epsilon_decay_steps
+            measure_training(state, whole_rounds(100, count))  # warm-up
+            states[row_key(count, mode)] = state
+    return states
+
+
+def _config(env: str, seed: int, **settings: Any) -> Config:
+    return resolve_config("nature", env=env, seed=seed, **settings)
+
+
+def _update_figures(env: str, device: torch.device, seed: int) -> dict[str, Any]:
+    """The nature preset's update (median ms on one minibatch of a small filled replay)
+    and its GFLOP/s against a large matrix multiply's, timed now on the same threads."""
+    training = TrainingState(_config(env, seed, replay_capacity=UPDATE_REPLAY_SLOTS), device)
+    try:
+        _fill(training.replay, np.random.default_rng(seed))
+        update_ms = median_update_ms(training.agent, training.replay.sample())
+        flop = agent_network_flops(training.agent).update(
+            training.config.batch_size, training.config.target
+        )
+    finally:
+        training.close()
+    matmul = measure_matmul(device)
+    return {
+        "update_ms": update_ms,
+        **update_flop_figures("", flop, update_ms, matmul),
+        **matmul_figures(matmul),
+    }
+
+
 def measure_num_envs(
     counts: list[int],
     env: str = "breakout",
@@ -72,10 +136,15 @@ def measure_num_envs(
     seed: int = 0,
     rounds: int = 2,
     concurrency: tuple[str, ...] = ("none",),
+    peers: bool = False,
+    cleanrl: CleanRLPeer | None = None,
+    peer_learning_starts: int = 5000,
 ) -> dict[str, Any]:
     """Training frames/s and where the time goes for each number of environments (and
     each `concurrency`), as `num_envs_{N}[_actor_learner]_{figure}` keys beside the
-    machine's."""
+    machine's; the update's GFLOP/s against this machine's matrix multiply (the first
+    state's agent). With `peers` (Stable-Baselines3) and `cleanrl`, the peers take their
+    turn in each round, and every row gets its ratio to each."""
     device = device or torch.device("cpu")
     figures: dict[str, Any] = {
         "env": env,
@@ -84,20 +153,13 @@ def measure_num_envs(
         "steps": steps,
         "rounds": rounds,
     }
-    states: dict[str, TrainingState] = {}
-    for count in counts:
-        for mode in concurrency:
-            config = resolve_config(
-                "nature", env=env, seed=seed, replay_capacity=replay_capacity, num_envs=count,
-                concurrency=mode,
-            )  # fmt: skip
-            state = training_state(config, device)
-            _fill(state.replay, np.random.default_rng(seed))
-            state.steps = config.replay_start_steps + config.epsilon_decay_steps
-            measure_training(state, whole_rounds(100, count))  # warm-up
-            states[row_key(count, mode)] = state
+    figures.update(_update_figures(env, device, seed))
+    states = _states(counts, concurrency, env, replay_capacity, device, seed)
+
     runs: dict[str, list[float]] = {key: [] for key in states}
     parts: dict[str, list[dict[str, float]]] = {key: [] for key in states}
+    peer_runs: list[dict[str, Any]] = []
+    cleanrl_runs: list[dict[str, Any]] = []
     for _ in range(rounds):
         for key, state in states.items():
             frames_per_second, shares = measure_training(
@@ -107,6 +169,21 @@ def measure_num_envs(
                 shares["learner_waiting"] = state.seconds["wait"] / state.seconds["total"]
             runs[key].append(frames_per_second)
             parts[key].append(shares)
+        if peers:
+            peer_runs.append(
+                run_sb3_dqn(
+                    env,
+                    steps,
+                    peer_learning_starts,
+                    seed,
+                    str(device),
+                    epsilon_decay_steps=peer_learning_starts,
+                )  # fmt: skip
+            )
+        if cleanrl is not None:
+            cleanrl_runs.append(
+                run_cleanrl_dqn(cleanrl, _config(env, seed), steps, peer_learning_starts, device)
+            )
     for key, state in states.items():
         figures[f"{key}_train_frames_per_second"] = float(np.mean(runs[key]))
         figures[f"{key}_train_frames_per_second_runs"] = [round(f, 1) for f in runs[key]]
@@ -115,7 +192,33 @@ def measure_num_envs(
             figures[f"{key}_share_{part}"] = round(share, 4)
         state.close()
     base = figures.get("num_envs_1_train_frames_per_second")
+    peer_figures = _peer_figures(peer_runs, cleanrl_runs)
+    figures.update(peer_figures)
     for key in states:
+        ours = figures[f"{key}_train_frames_per_second"]
         if base:
-            figures[f"{key}_ratio_vs_1"] = figures[f"{key}_train_frames_per_second"] / base
+            figures[f"{key}_ratio_vs_1"] = ours / base
+        for peer in ("sb3", "cleanrl"):
+            theirs = peer_figures.get(f"{peer}_train_frames_per_second")
+            if theirs:
+                figures[f"{key}_ratio_vs_{peer}"] = ours / theirs
+    return figures
+
+
+def _peer_figures(
+    peer_runs: list[dict[str, Any]], cleanrl_runs: list[dict[str, Any]]
+) -> dict[str, Any]:
+    """The peers' mean frames/s over the rounds (as `sb3_...` and `cleanrl_...`), each
+    round's, and the last round's settings."""
+    figures: dict[str, Any] = {}
+    if peer_runs:
+        figures.update({k: v for k, v in peer_runs[-1].items() if k.startswith("peer")})
+        fps = [run["peer_train_frames_per_second"] for run in peer_runs]
+        figures["sb3_train_frames_per_second"] = float(np.mean(fps))
+        figures["sb3_train_frames_per_second_runs"] = [round(f, 1) for f in fps]
+    if cleanrl_runs:
+        figures.update(cleanrl_runs[-1])
+        fps = [run["cleanrl_train_frames_per_second"] for run in cleanrl_runs]
+        figures["cleanrl_train_frames_per_second"] = float(np.mean(fps))
+        figures["cleanrl_train_frames_per_second_runs"] = [round(f, 1) for f in fps]
     return figures

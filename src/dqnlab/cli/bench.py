@@ -4,12 +4,15 @@ compressed frame size of every game, or what Ray adds to a sweep."""
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
 
 from dqnlab.cli.common import Device, resolve_device, write_json
 from dqnlab.errors import DqnlabError
+
+if TYPE_CHECKING:
+    import torch
 
 
 def bench(
@@ -93,8 +96,9 @@ def bench(
         bool,
         typer.Option(
             "--checkpoint",
-            help="Instead of the rest: the seconds and bytes of the nature preset's stop "
-            "checkpoint after 25,000 steps of random play, raw and lz4",
+            help="Instead of the rest (or with --num-envs, beside it): the seconds and bytes "
+            "of the nature preset's stop checkpoint after 25,000 steps of random play, raw "
+            "and lz4",
         ),
     ] = False,
     gpu: Annotated[
@@ -111,7 +115,9 @@ def bench(
         str | None,
         typer.Option(
             help="Instead of the rest: training frames/s of the nature preset with each "
-            "listed number of environments (num_envs), e.g. 1,2,4,8",
+            "listed number of environments (num_envs), e.g. 1,2,4,8, and the update against "
+            "the matrix multiply; --peers, --cleanrl and --checkpoint join it, and a table "
+            "of all of it closes the output",
         ),
     ] = None,
     concurrency: Annotated[
@@ -157,21 +163,15 @@ def bench(
                 sweep_repeats,
                 echo=lambda line: typer.echo(line, err=True),
             )
+    elif num_envs is not None:
+        figures = _table(
+            num_envs, concurrency, env, steps, replay_capacity, resolve_device(device),
+            peers, cleanrl, cleanrl_venv, checkpoint,
+        )  # fmt: skip
     elif checkpoint:
         from dqnlab.bench.checkpoint import measure_stop_checkpoint
 
         figures = measure_stop_checkpoint(env, device=resolve_device(device))
-    elif num_envs is not None:
-        from dqnlab.bench.vector import measure_num_envs, parse_concurrency, parse_counts
-
-        figures = measure_num_envs(
-            parse_counts(num_envs),
-            env,
-            steps,
-            replay_capacity or 100_000,
-            resolve_device(device),
-            concurrency=tuple(parse_concurrency(concurrency)),
-        )
     elif variants is not None:
         from dqnlab.bench.variants import measure_variants, parse_variants
 
@@ -199,5 +199,53 @@ def bench(
         )
     for name, value in figures.items():
         typer.echo(f"{name:40s} {value:.4g}" if isinstance(value, float) else f"{name:40s} {value}")
+    if num_envs is not None:
+        from dqnlab.bench.table import format_table
+
+        typer.echo("\n" + format_table(figures))
     if json_path:
         write_json(json_path, figures)
+
+
+def _table(
+    num_envs: str,
+    concurrency: str,
+    env: str,
+    steps: int,
+    replay_capacity: int | None,
+    device: torch.device,
+    peers: bool,
+    cleanrl: Path | None,
+    cleanrl_venv: Path | None,
+    checkpoint: bool,
+) -> dict[str, Any]:
+    """`--num-envs`: each count and concurrency, with the peers in the same rounds and the
+    stop checkpoint when asked: issue 22's table from one command."""
+    from dqnlab.bench.cleanrl import prepare_cleanrl
+    from dqnlab.bench.sb3 import peer_available
+    from dqnlab.bench.vector import measure_num_envs, parse_concurrency, parse_counts
+
+    counts, modes = parse_counts(num_envs), tuple(parse_concurrency(concurrency))
+    if cleanrl_venv is not None and cleanrl is None:
+        raise DqnlabError("--cleanrl-venv is for --cleanrl DIR: give the CleanRL checkout")
+    if peers and not peer_available():
+        raise DqnlabError(
+            "--peers needs Stable-Baselines3: pip install 'dqnlab[bench]' (or -e '.[bench]')"
+        )
+    # Its venv is checked, or made, before anything is timed.
+    peer = prepare_cleanrl(cleanrl, cleanrl_venv) if cleanrl is not None else None
+    figures = measure_num_envs(
+        counts, env, steps, replay_capacity or 100_000, device,
+        concurrency=modes, peers=peers, cleanrl=peer,
+    )  # fmt: skip
+    if checkpoint:
+        from dqnlab.bench.checkpoint import measure_stop_checkpoint
+
+        figures.update(
+            {
+                k: v
+                for k, v in measure_stop_checkpoint(env, device=device).items()
+                if k.startswith("checkpoint")
+            }
+        )
+    return figures
