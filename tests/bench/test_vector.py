@@ -8,6 +8,7 @@ import pytest
 import torch
 
 from dqnlab.bench import flops, vector
+from dqnlab.bench.measure import measure_training
 from dqnlab.bench.table import format_table
 from dqnlab.bench.vector import measure_num_envs, parse_concurrency, parse_counts
 from dqnlab.errors import ConfigError
@@ -75,7 +76,17 @@ def test_bad_counts_are_refused_in_one_line() -> None:
             parse_counts(text)
 
 
-def test_actor_learner_rows_come_beside_the_sequential_ones() -> None:
+def test_actor_learner_rows_come_beside_the_sequential_ones(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    measured_with: list[tuple[str, int]] = []  # (the state's class, threads while timed)
+
+    def timed(state: Any, steps: int) -> tuple[float, dict[str, float]]:
+        measured_with.append((type(state).__name__, torch.get_num_threads()))
+        return measure_training(state, steps)
+
+    monkeypatch.setattr(vector, "measure_training", timed)
+    threads = torch.get_num_threads()
     figures = measure_num_envs(  # 10 steps: the actor's rounds of 3 are timed whole
         [1, 3], env="pong", steps=10, replay_capacity=600, device=torch.device("cpu"),
         rounds=1, concurrency=("none", "actor-learner"),
@@ -86,6 +97,19 @@ def test_actor_learner_rows_come_beside_the_sequential_ones() -> None:
             assert 0 <= figures[f"{key}_share_update"] <= 1
         assert 0 <= figures[f"num_envs_{count}_actor_learner_share_learner_waiting"] <= 1
     assert "num_envs_1_share_learner_waiting" not in figures
+    # Each row ran with its own threads: an actor thread's state sets the process's
+    # PyTorch threads one lower for its learner, which the sequential rows must not inherit.
+    learner = max(1, threads - 1)
+    expected = {"TrainingState": threads, "ActorLearnerState": learner}
+    warm_ups, timed_rows = measured_with[:4], measured_with[4:]
+    # (An actor thread's state sets its learner's threads at its first round, within the
+    # warm-up; the next state's warm-up must start with all of them again.)
+    assert [count for _, count in warm_ups] == [threads] * 4
+    assert [count for _, count in timed_rows] == [expected[kind] for kind, _ in timed_rows]
+    for count in (1, 3):
+        assert figures[f"num_envs_{count}_threads"] == threads
+        assert figures[f"num_envs_{count}_actor_learner_threads"] == learner
+    assert torch.get_num_threads() == threads
 
 
 def test_bad_concurrency_lists_are_refused_in_one_line() -> None:

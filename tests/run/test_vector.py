@@ -166,6 +166,11 @@ def test_a_run_logs_every_environments_games(tmp_path: Path) -> None:
     steps = [int(row["step"]) for row in rows]
     assert steps == sorted(steps) and steps[-1] <= 1000
     assert sum(int(row["steps"]) for row in rows) <= 1000
+    # The rows say which environment played: each stepped 1000 / 3 times, so the games
+    # of one environment cannot hold more steps than that (all of them together could).
+    assert {row["env"] for row in rows} == {"0", "1", "2"}
+    for env in "012":
+        assert sum(int(row["steps"]) for row in rows if row["env"] == env) <= 334
     # Periods at the agent-step boundaries they cross: 501 and 1000 (vector steps of 3).
     assert [e[0] for e in result.evaluations] == [501, 1000]
 

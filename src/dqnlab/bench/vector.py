@@ -90,6 +90,7 @@ def _states(
 ) -> dict[str, TrainingState]:
     """One training state per count and concurrency, filled, past the ε anneal, warmed up."""
     states: dict[str, TrainingState] = {}
+    threads = torch.get_num_threads()
     for count in counts:
         for mode in concurrency:
             config = _config(
@@ -99,6 +100,7 @@ def _states(
             _fill(state.replay, np.random.default_rng(seed))
             state.steps = config.replay_start_steps + config.epsilon_decay_steps
             measure_training(state, whole_rounds(100, count))  # warm-up
+            torch.set_num_threads(threads)  # as it was: an actor thread's state changed it
             states[row_key(count, mode)] = state
     return states
 
@@ -125,6 +127,12 @@ def _update_figures(env: str, device: torch.device, seed: int) -> dict[str, Any]
         **update_flop_figures("", flop, update_ms, matmul),
         **matmul_figures(matmul),
     }
+
+
+def _threads_of(state: TrainingState, threads: int) -> int:
+    """The threads `state`'s training thread runs with (fewer with an actor thread)."""
+    learner = getattr(state, "learner_threads", None)
+    return threads if learner is None else learner
 
 
 def measure_num_envs(
@@ -160,11 +168,17 @@ def measure_num_envs(
     parts: dict[str, list[dict[str, float]]] = {key: [] for key in states}
     peer_runs: list[dict[str, Any]] = []
     cleanrl_runs: list[dict[str, Any]] = []
+    threads = figures["threads"]
     for _ in range(rounds):
         for key, state in states.items():
+            # An actor thread's state runs its learner with fewer threads, set for the
+            # whole process when it started: each state runs with its own count.
+            figures[f"{key}_threads"] = _threads_of(state, threads)
+            torch.set_num_threads(figures[f"{key}_threads"])
             frames_per_second, shares = measure_training(
                 state, whole_rounds(steps, len(state.envs))
             )
+            torch.set_num_threads(threads)
             if "wait" in state.seconds:
                 shares["learner_waiting"] = state.seconds["wait"] / state.seconds["total"]
             runs[key].append(frames_per_second)

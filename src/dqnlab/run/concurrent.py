@@ -155,6 +155,13 @@ class ActorLearnerState(TrainingState):
         """Training frames of the rounds learned from (the actor may be ahead)."""
         return self.learner_frames
 
+    @property
+    def learner_threads(self) -> int | None:
+        """The PyTorch threads the training thread runs with once started, on CPU (it sets
+        them for the process: a benchmark that interleaves several states sets them back
+        for the others); None on another device or before the first round."""
+        return None if self._threads is None else self._threads[1]
+
     # The learner ----------------------------------------------------------------------
 
     def advance(self, max_steps: int | None = None) -> list[FinishedGame]:

@@ -15,7 +15,10 @@ if TYPE_CHECKING:
 
     from dqnlab.run.wandb_log import MirroredWriter, WandbLog
 
-EPISODE_FIELDS = ("step", "frames", "episode", "score", "steps", "epsilon", "wall_seconds")
+# `env`: which of the run's `num_envs` environments played the game (0 with one).
+EPISODE_FIELDS = (
+    "step", "frames", "episode", "score", "steps", "epsilon", "wall_seconds", "env",
+)  # fmt: skip
 # Logged rows reach the file (the OS's page cache, not an fsync) at most this long after
 # they were logged, so that `tail -f`, a plotting script or a report reads a live run.
 FRESH_SECONDS = 30.0

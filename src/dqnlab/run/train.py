@@ -236,6 +236,7 @@ class TrainingLoop:
                 "steps": game.steps,
                 "epsilon": round(epsilon_at(game.step - 1, self.config), 6),
                 "wall_seconds": round(time.perf_counter() - self.start, 3),
+                "env": game.env,
             }
         )
 
