@@ -127,6 +127,14 @@ def bench(
             "none,actor-learner"
         ),
     ] = "none",
+    emulators: Annotated[
+        int | None,
+        typer.Option(
+            help="Instead of the rest: agent steps/s of this many emulators stepped by "
+            "dqnlab in one process against ale-py's threaded vector environment (1 and 2 "
+            "threads), the same preprocessing each way",
+        ),
+    ] = None,
     sweep_runs: Annotated[
         int, typer.Option(help="Tiny CartPole runs trained each way in each --sweep repeat")
     ] = 4,
@@ -145,6 +153,19 @@ def bench(
         write_gpu_benchmark(
             json_path or Path("bench-gpu.json"), str(resolve_device(device)), quick, env
         )
+        return
+    if emulators is not None:
+        from dqnlab.bench.emulators import measure_emulators
+
+        if emulators < 1:
+            raise DqnlabError(f"--emulators {emulators}: give at least 1")
+        figures = measure_emulators(emulators, steps=max(1, steps // emulators), game=env)
+        for name, value in figures.items():
+            typer.echo(
+                f"{name:45s} {value:.4g}" if isinstance(value, float) else f"{name:45s} {value}"
+            )
+        if json_path:
+            write_json(json_path, figures)
         return
     if compression_scan is not None:
         from dqnlab.bench.compression import write_scan
