@@ -229,7 +229,8 @@ class Config:
         "none",
         "none: act, store, learn in turn (Nature, the Lua code); actor-learner: a thread steps "
         "the environments with a copy of the online network refreshed every "
-        "actor_refresh_updates updates while the learner updates; the replay ratio is held "
+        "actor_refresh_updates updates while the learner updates; the replay ratio is held; "
+        "for machines with cores to spare (0.73-0.77x of none on 2 CPU cores) "
         '(docs/benchmark.md, "Acting while learning"; not with update_graph = cuda)',
     )
     actor_refresh_updates: int = _setting(
