@@ -3,7 +3,8 @@
 Every faithful detail of the Nature DQN is one field of `Config` (`settings.py`); the
 `nature` preset (`presets/nature.toml`) sets each to DeepMind's value. Units are part of
 every name: a *frame* is one raw emulator frame, a *step* is one agent decision.
-`files.py` reads and writes settings as text: presets, `--set` overrides, `config.toml`.
+`files.py` reads and writes settings as text: presets, `--set` overrides, `config.toml`;
+`fingerprint.py` says what a checkpoint must match to be resumed, and derives the seeds.
 """
 
 from dqnlab.config.files import (
@@ -19,18 +20,20 @@ from dqnlab.config.files import (
     toml_value,
     with_env_arguments,
 )
-from dqnlab.config.settings import (
+from dqnlab.config.fingerprint import (
     ADDED_WITH_DEFAULTS,
-    CHOICES,
     DEFAULT_EVALUATION_SEED,
-    FIELD_NAMES,
     RESUMABLE_CHANGES,
-    USER_PARTS,
-    WANDB_PROJECT_FORBIDDEN,
-    Config,
     config_fingerprint,
     derive_seeds,
     differing_settings,
+)
+from dqnlab.config.settings import (
+    CHOICES,
+    FIELD_NAMES,
+    USER_PARTS,
+    WANDB_PROJECT_FORBIDDEN,
+    Config,
 )
 
 __all__ = [
