@@ -203,11 +203,12 @@ def inspect(
     run_dir: RunDir,
     frames: Annotated[int, typer.Option(help="Frames picked from one evaluation game")] = 8,
     checkpoints: Annotated[
-        str,
+        str | None,
         typer.Option(
-            help="Networks compared: best, worst and/or evaluation steps, comma-separated"
+            help="Networks compared: best, worst and/or evaluation steps, comma-separated "
+            "(default best,worst; an exported folder has only best)"
         ),
-    ] = "best,worst",
+    ] = None,
     observations: Annotated[
         Path | None,
         typer.Option(help="A .npy of stacked network inputs to use instead of picked frames"),
@@ -226,10 +227,14 @@ def inspect(
     frame (the screen and a bar per action and network, greedy actions hatched),
     overview.png, q_values.csv and the inputs. worst is the network of the lowest
     periodic evaluation after the first quarter of training; steps need
-    eval_networks_kept = "all"."""
+    eval_networks_kept = "all". An exported or pulled folder has one network (best)."""
     from dqnlab.analysis.inspection.qvalues import parse_checkpoints
     from dqnlab.analysis.inspection.write import inspect_run
+    from dqnlab.run.exported import is_exported_dir
     from dqnlab.run.rundir import inspect_dir
+
+    if checkpoints is None:
+        checkpoints = "best" if is_exported_dir(run_dir) else "best,worst"
 
     if frames <= 0:
         raise DqnlabError(f"--frames {frames} must be positive")

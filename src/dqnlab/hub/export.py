@@ -147,6 +147,9 @@ def _results(
     return {
         **{key: record.get(key) for key in kept},
         "checkpoint": checkpoint if checkpoint in ("best", "last") else path.name,
+        # How far the run had trained (its newest checkpoint): `dqnlab report` says whether
+        # the exported agent finished its budget.
+        "trained_steps": rundir.network_step(run_dir, "last"),
         "network": exported.MODEL_FILE,
         "protocol": PROTOCOL,
         "dqnlab_version": __version__,

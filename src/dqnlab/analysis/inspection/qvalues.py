@@ -33,7 +33,7 @@ from dqnlab.envs import Environment, make_env
 from dqnlab.envs.atari import AtariEnv
 from dqnlab.envs.spaces import ObservationLayout
 from dqnlab.errors import DqnlabError
-from dqnlab.run import rundir
+from dqnlab.run import exported, rundir
 from dqnlab.run.logs import read_csv
 from dqnlab.run.play import EvaluationResult, play
 
@@ -123,7 +123,15 @@ def _checked_names(checkpoints: Iterable[str | int]) -> list[str]:
 
 
 def network_path(run_dir: Path, checkpoint: str | int, config: Config) -> Path:
-    """The file of `checkpoint` ("best", "worst" or a step) in the run, or a clear error."""
+    """The file of `checkpoint` ("best", "worst" or a step) in the run, or a clear error.
+    An exported folder has one network, its best: model.safetensors."""
+    if exported.is_exported_dir(run_dir):
+        if checkpoint != "best":
+            raise DqnlabError(
+                f"{run_dir} is an exported folder: its one network is {exported.MODEL_FILE} "
+                f"(--checkpoints best), not {checkpoint}"
+            )
+        return exported.network_path(run_dir)
     if checkpoint in CHECKPOINT_NAMES:
         path = rundir.network_path(run_dir, checkpoint)
         if checkpoint == "worst" and not path.is_file():
@@ -161,7 +169,10 @@ def load_network(
 ) -> tuple[InspectedNetwork, Agent, Config]:
     """The network saved at `path`, built with the configuration it was trained with, in
     an agent seeded with `seed` (its epsilon-greedy draws)."""
-    payload = rundir.load_network(path, map_location=device)
+    if path.suffix == ".safetensors":  # an exported folder's
+        payload = exported.load_network(path, map_location=device)
+    else:
+        payload = rundir.load_network(path, map_location=device)
     agent, config, _ = rundir.agent_from_network(payload, path, seed, device)
     agent.online.eval()
     step = int(payload["step"])
@@ -304,7 +315,7 @@ def compare_networks(
     config = rundir.load_run_config(run_dir)  # a clear error if RUN_DIR is not a run
     paths = [(name, network_path(run_dir, name, config)) for name in _checked_names(checkpoints)]
     best, best_agent, best_config = load_network(
-        "best", rundir.network_path(run_dir, "best"), device, seed
+        "best", network_path(run_dir, "best", config), device, seed
     )
     env_seed = derive_seeds(seed, 2)[0]
     assert best_agent.input_shape is not None and best_agent.observation_dtype is not None

@@ -21,7 +21,7 @@ from dqnlab.config import (
     setting_text,
 )
 from dqnlab.errors import DqnlabError
-from dqnlab.run import rundir
+from dqnlab.run import exported, rundir
 from dqnlab.run.logs import read_csv
 
 # Settings that never define a configuration: the seed (the runs of a configuration are
@@ -113,8 +113,21 @@ def load_run(run_dir: Path) -> RunResults:
             )
         except (TypeError, ValueError):  # a line torn by a killed run: fields missing
             continue
-    steps = rundir.network_step(run_dir, "last") or 0
+    steps = _trained_steps(run_dir)
     return RunResults(run_dir, config, evaluations, rundir.load_final_evaluation(run_dir), steps)
+
+
+def _trained_steps(run_dir: Path) -> int:
+    """Agent steps of a run's newest checkpoint; for an exported folder, of the run's when
+    it was exported (results.json's `trained_steps`; an older export has none: then the
+    network's own step, the least the run had trained)."""
+    if not exported.is_exported_dir(run_dir):
+        return rundir.network_step(run_dir, "last") or 0
+    results = rundir.read_json_file(run_dir / exported.RESULTS_FILE) or {}
+    if results.get("trained_steps") is not None:
+        return int(results["trained_steps"])
+    step = exported.read_description(exported.network_path(run_dir)).get("step")
+    return int(step) if step is not None else 0
 
 
 def _optional_number(text: str | None) -> float | None:
