@@ -331,26 +331,22 @@ class ActorLearnerState(TrainingState):
         else:
             actions = acting.act_batch(self.stacked[:count], epsilons, training=True)
         acted = perf_counter()
+        # The observations acted on, copied at once: the histories move on as they step.
         observations = self.stacked[:count, -1].copy()
-        rewards, terminals, finished = [], [], []
+        rewards: list[float] = []
+        terminals: list[bool] = []
         last: dict[int, np.ndarray] = {}
-        clip = config.reward_clip
-        for index, action in enumerate(actions):
-            env, history = self.envs[index], self.histories[index]
-            observation, reward, terminated, truncated = env.step(action)
-            rewards.append(max(-clip, min(clip, reward)) if clip else reward)
-            terminals.append(terminated)
-            self.game_scores[index] += reward
-            self.game_steps[index] += 1
-            if terminated or truncated:
-                last[index] = np.array(observation, copy=True)
-                if env.game_ended:
-                    score, steps = self.game_scores[index], self.game_steps[index]
-                    finished.append(FinishedGame(index, score, steps, first + index))
-                    self.game_scores[index], self.game_steps[index] = 0.0, 0
-                history.reset(env.reset())
-            else:
-                history.push(observation)
+
+        def store(
+            index: int, acted_on: np.ndarray, action: int, reward: float, terminal: bool
+        ) -> None:
+            rewards.append(reward)
+            terminals.append(terminal)
+
+        def store_last(index: int, observation: np.ndarray) -> None:
+            last[index] = np.array(observation, copy=True)
+
+        finished, _ = self.step_environments(actions, first, store, store_last)
         self.actor_steps = first + count - 1
         seconds["act"] += acted - start
         seconds["env"] += perf_counter() - acted

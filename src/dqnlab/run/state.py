@@ -18,6 +18,7 @@ from __future__ import annotations
 import random
 import shutil
 import sys
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from time import perf_counter
 from typing import Any, NamedTuple
@@ -169,25 +170,54 @@ class TrainingState:
         else:
             actions = self.agent.act_batch(self.stacked[:count], epsilons, training=True)
         acted = perf_counter()
+        replay = self.replay
+        finished, env_seconds = self.step_environments(
+            actions,
+            first,
+            # The observation acted on (the history's newest frame) with its transition.
+            lambda index, acted_on, action, reward, terminal: replay.add(
+                acted_on, action, reward, terminal, index
+            ),
+            lambda index, observation: replay.add_last(observation, index),
+        )
+        stored = perf_counter()
+        seconds["act"] += acted - start
+        seconds["env"] += env_seconds
+        seconds["store"] += stored - acted - env_seconds
+        for step in range(first, first + count):
+            self.steps = step
+            self._learn(step)
+        seconds["total"] += perf_counter() - start
+        return finished
+
+    def step_environments(
+        self,
+        actions: Sequence[int],
+        first: int,
+        store: Callable[[int, np.ndarray, int, float, bool], object],
+        store_last: Callable[[int, np.ndarray], object],
+    ) -> tuple[list[FinishedGame], float]:
+        """Environment i takes `actions[i]` (its agent step is `first` + i): its transition
+        goes to `store` (i, the observation acted on, the action, the clipped reward, the
+        terminal flag), the observation that ended a life or a game to `store_last`; its
+        score, its game's steps and its frame history are kept up to date, and a finished
+        life or game is reset. Returns the whole games that ended and the seconds spent in
+        the environments (resets included). The sequential loop and the actor thread
+        (`concurrent.py`) both step their environments here."""
         finished = []
         env_seconds = 0.0
-        clip = config.reward_clip
+        clip = self.config.reward_clip
         for index, action in enumerate(actions):
             env, history = self.envs[index], self.histories[index]
             env_start = perf_counter()
             observation, reward, terminated, truncated = env.step(action)
             env_seconds += perf_counter() - env_start
-            self.replay.add(
-                history.newest,
-                action,
-                max(-clip, min(clip, reward)) if clip else reward,
-                terminated,
-                index,
-            )
+            clipped = max(-clip, min(clip, reward)) if clip else reward
+            store(index, history.newest, action, clipped, terminated)
             self.game_scores[index] += reward
             self.game_steps[index] += 1
             if terminated or truncated:
-                self.replay.add_last(observation, index)
+                store_last(index, observation)
                 if env.game_ended:
                     score, steps = self.game_scores[index], self.game_steps[index]
                     finished.append(FinishedGame(index, score, steps, first + index))
@@ -198,15 +228,7 @@ class TrainingState:
                 history.reset(observation)
             else:
                 history.push(observation)
-        stored = perf_counter()
-        seconds["act"] += acted - start
-        seconds["env"] += env_seconds
-        seconds["store"] += stored - acted - env_seconds
-        for step in range(first, first + count):
-            self.steps = step
-            self._learn(step)
-        seconds["total"] += perf_counter() - start
-        return finished
+        return finished, env_seconds
 
     def _learn(self, step: int) -> None:
         """What agent step `step` does after its transition is stored: the held-out draw,
