@@ -150,8 +150,8 @@ def measure_num_envs(
 ) -> dict[str, Any]:
     """Training frames/s and where the time goes for each number of environments (and
     each `concurrency`), as `num_envs_{N}[_actor_learner]_{figure}` keys beside the
-    machine's; the update's GFLOP/s against this machine's matrix multiply (the first
-    state's agent). With `peers` (Stable-Baselines3) and `cleanrl`, the peers take their
+    machine's; the nature update's GFLOP/s against this machine's matrix multiply, timed
+    first (`_update_figures`). With `peers` (Stable-Baselines3) and `cleanrl`, the peers take their
     turn in each round, and every row gets its ratio to each."""
     device = device or torch.device("cpu")
     figures: dict[str, Any] = {
