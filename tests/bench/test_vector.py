@@ -7,7 +7,7 @@ from typing import Any
 import pytest
 import torch
 
-from dqnlab.bench import flops, vector
+from dqnlab.bench import flops, peers, vector
 from dqnlab.bench.measure import measure_training
 from dqnlab.bench.table import format_table
 from dqnlab.bench.vector import measure_num_envs, parse_concurrency, parse_counts
@@ -49,7 +49,7 @@ def test_the_peers_take_turns_and_every_row_gets_its_ratio_to_them(
         return {"peer": "stable-baselines3", "peer_version": "9.9",
                 "peer_train_frames_per_second": 100.0 * len(calls)}  # fmt: skip
 
-    monkeypatch.setattr(vector, "run_sb3_dqn", fake_sb3)
+    monkeypatch.setattr(peers, "run_sb3_dqn", fake_sb3)
     figures = measure_num_envs(
         [1, 2], env="pong", steps=8, replay_capacity=600, device=torch.device("cpu"),
         rounds=2, peers=True,

@@ -17,7 +17,7 @@ import psutil
 import torch
 
 from dqnlab.algorithm.replay import ReplayMemory
-from dqnlab.bench.cleanrl import cleanrl_figures, prepare_cleanrl, run_cleanrl_dqn
+from dqnlab.bench.cleanrl import cleanrl_figures, prepare_cleanrl
 from dqnlab.bench.compression import measure_compression
 from dqnlab.bench.flops import (
     agent_network_flops,
@@ -31,7 +31,8 @@ from dqnlab.bench.measure import (
     median_sample_us,
     median_update_ms,
 )
-from dqnlab.bench.sb3 import peer_available, run_sb3_dqn
+from dqnlab.bench.peers import peer_round
+from dqnlab.bench.sb3 import peer_available
 from dqnlab.config import resolve_config
 from dqnlab.errors import DqnlabError
 from dqnlab.run.lockstep import play_games
@@ -127,22 +128,12 @@ def run_benchmark(
     train_runs, peer_runs, cleanrl_runs = [], [], []
     for _ in range(rounds):
         train_runs.append(measure_training(training, steps))
-        if peers:
-            # The peer's epsilon reaches 0.1 by the end of its replay start: measured alike.
-            peer_runs.append(
-                run_sb3_dqn(
-                    env,
-                    steps,
-                    peer_learning_starts,
-                    seed,
-                    str(device),
-                    epsilon_decay_steps=peer_learning_starts,
-                )  # fmt: skip
-            )
-        if cleanrl is not None:
-            cleanrl_runs.append(
-                run_cleanrl_dqn(cleanrl, config, steps, peer_learning_starts, device)
-            )
+        # The peers' ε reaches 0.1 by the end of their replay start: measured alike.
+        sb3_run, cleanrl_run = peer_round(
+            config, steps, peer_learning_starts, device, peers, cleanrl
+        )
+        peer_runs += [sb3_run] if sb3_run else []
+        cleanrl_runs += [cleanrl_run] if cleanrl_run else []
     figures["train_frames_per_second"] = float(np.mean([run[0] for run in train_runs]))
     figures["train_frames_per_second_runs"] = [round(run[0], 1) for run in train_runs]
     for name, fraction in train_runs[-1][1].items():

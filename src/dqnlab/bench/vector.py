@@ -21,7 +21,7 @@ import numpy as np
 import torch
 
 from dqnlab.algorithm.replay import ReplayMemory
-from dqnlab.bench.cleanrl import CleanRLPeer, run_cleanrl_dqn
+from dqnlab.bench.cleanrl import CleanRLPeer
 from dqnlab.bench.flops import (
     agent_network_flops,
     matmul_figures,
@@ -34,7 +34,7 @@ from dqnlab.bench.measure import (
     median_update_ms,
     whole_rounds,
 )
-from dqnlab.bench.sb3 import run_sb3_dqn
+from dqnlab.bench.peers import peer_round
 from dqnlab.config import Config, resolve_config
 from dqnlab.config.settings import CHOICES
 from dqnlab.errors import ConfigError
@@ -183,21 +183,11 @@ def measure_num_envs(
                 shares["learner_waiting"] = state.seconds["wait"] / state.seconds["total"]
             runs[key].append(frames_per_second)
             parts[key].append(shares)
-        if peers:
-            peer_runs.append(
-                run_sb3_dqn(
-                    env,
-                    steps,
-                    peer_learning_starts,
-                    seed,
-                    str(device),
-                    epsilon_decay_steps=peer_learning_starts,
-                )  # fmt: skip
-            )
-        if cleanrl is not None:
-            cleanrl_runs.append(
-                run_cleanrl_dqn(cleanrl, _config(env, seed), steps, peer_learning_starts, device)
-            )
+        sb3_run, cleanrl_run = peer_round(
+            _config(env, seed), steps, peer_learning_starts, device, peers, cleanrl
+        )
+        peer_runs += [sb3_run] if sb3_run else []
+        cleanrl_runs += [cleanrl_run] if cleanrl_run else []
     for key, state in states.items():
         figures[f"{key}_train_frames_per_second"] = float(np.mean(runs[key]))
         figures[f"{key}_train_frames_per_second_runs"] = [round(f, 1) for f in runs[key]]

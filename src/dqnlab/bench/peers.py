@@ -1,0 +1,35 @@
+"""One round of the peers, as `dqnlab bench` alternates them with dqnlab's own rounds."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import torch
+
+from dqnlab.bench.cleanrl import CleanRLPeer, run_cleanrl_dqn
+from dqnlab.bench.sb3 import run_sb3_dqn
+from dqnlab.config import Config
+
+
+def peer_round(
+    config: Config,
+    steps: int,
+    learning_starts: int,
+    device: torch.device,
+    sb3: bool,
+    cleanrl: CleanRLPeer | None,
+) -> tuple[dict[str, Any] | None, dict[str, Any] | None]:
+    """Stable-Baselines3's DQN (with `sb3`) and CleanRL's `dqn_atari.py` (with `cleanrl`)
+    on `config`'s game and seed, each timed over `steps` agent steps after
+    `learning_starts`, by the end of which its ε has reached 0.1, as dqnlab's rounds are
+    measured; None for a peer not asked for."""
+    sb3_run = None
+    if sb3:
+        sb3_run = run_sb3_dqn(
+            config.env, steps, learning_starts, config.seed, str(device),
+            epsilon_decay_steps=learning_starts,
+        )  # fmt: skip
+    cleanrl_run = None
+    if cleanrl is not None:
+        cleanrl_run = run_cleanrl_dqn(cleanrl, config, steps, learning_starts, device)
+    return sb3_run, cleanrl_run
