@@ -2,13 +2,30 @@
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Any
 
 import torch
 
-from dqnlab.bench.cleanrl import CleanRLPeer, run_cleanrl_dqn
-from dqnlab.bench.sb3 import run_sb3_dqn
+from dqnlab.bench.cleanrl import CleanRLPeer, prepare_cleanrl, run_cleanrl_dqn
+from dqnlab.bench.sb3 import peer_available, run_sb3_dqn
 from dqnlab.config import Config
+from dqnlab.errors import DqnlabError
+
+
+def prepare_peers(
+    sb3: bool, cleanrl_dir: Path | None, cleanrl_venv: Path | None
+) -> CleanRLPeer | None:
+    """Before anything is timed: Stable-Baselines3 importable (with `sb3`), and CleanRL's
+    checkout checked and its venv checked or made (with `cleanrl_dir`); one line each
+    when not."""
+    if cleanrl_venv is not None and cleanrl_dir is None:
+        raise DqnlabError("--cleanrl-venv is for --cleanrl DIR: give the CleanRL checkout")
+    if sb3 and not peer_available():
+        raise DqnlabError(
+            "--peers needs Stable-Baselines3: pip install 'dqnlab[bench]' (or -e '.[bench]')"
+        )
+    return prepare_cleanrl(cleanrl_dir, cleanrl_venv) if cleanrl_dir is not None else None
 
 
 def peer_round(

@@ -17,7 +17,7 @@ import psutil
 import torch
 
 from dqnlab.algorithm.replay import ReplayMemory
-from dqnlab.bench.cleanrl import cleanrl_figures, prepare_cleanrl
+from dqnlab.bench.cleanrl import cleanrl_figures
 from dqnlab.bench.compression import measure_compression
 from dqnlab.bench.flops import (
     agent_network_flops,
@@ -31,10 +31,8 @@ from dqnlab.bench.measure import (
     median_sample_us,
     median_update_ms,
 )
-from dqnlab.bench.peers import peer_round
-from dqnlab.bench.sb3 import peer_available
+from dqnlab.bench.peers import peer_round, prepare_peers
 from dqnlab.config import resolve_config
-from dqnlab.errors import DqnlabError
 from dqnlab.run.lockstep import play_games
 from dqnlab.run.play import play
 from dqnlab.run.state import TrainingState, replay_device
@@ -74,12 +72,7 @@ def run_benchmark(
     that checkout joins the rounds too (`cleanrl.run_cleanrl_dqn`)."""
     device = device or torch.device("cpu")
     rounds = rounds or (2 if peers or cleanrl_dir else 1)
-    # Its venv is checked, or made, before anything is timed.
-    cleanrl = prepare_cleanrl(cleanrl_dir, cleanrl_venv) if cleanrl_dir else None
-    if peers and not peer_available():
-        raise DqnlabError(
-            "--peers needs Stable-Baselines3: pip install 'dqnlab[bench]' (or -e '.[bench]')"
-        )
+    cleanrl = prepare_peers(peers, cleanrl_dir, cleanrl_venv)
     config = resolve_config(
         "nature",
         env=env,

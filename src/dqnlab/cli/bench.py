@@ -204,8 +204,6 @@ def bench(
             resolve_device(device),
         )
     else:
-        if cleanrl_venv is not None and cleanrl is None:
-            raise DqnlabError("--cleanrl-venv is for --cleanrl DIR: give the CleanRL checkout")
         figures = run_benchmark(
             env,
             steps,
@@ -242,19 +240,11 @@ def _table(
 ) -> dict[str, Any]:
     """`--num-envs`: each count and concurrency, with the peers in the same rounds and the
     stop checkpoint when asked: issue 22's table from one command."""
-    from dqnlab.bench.cleanrl import prepare_cleanrl
-    from dqnlab.bench.sb3 import peer_available
+    from dqnlab.bench.peers import prepare_peers
     from dqnlab.bench.vector import measure_num_envs, parse_concurrency, parse_counts
 
     counts, modes = parse_counts(num_envs), tuple(parse_concurrency(concurrency))
-    if cleanrl_venv is not None and cleanrl is None:
-        raise DqnlabError("--cleanrl-venv is for --cleanrl DIR: give the CleanRL checkout")
-    if peers and not peer_available():
-        raise DqnlabError(
-            "--peers needs Stable-Baselines3: pip install 'dqnlab[bench]' (or -e '.[bench]')"
-        )
-    # Its venv is checked, or made, before anything is timed.
-    peer = prepare_cleanrl(cleanrl, cleanrl_venv) if cleanrl is not None else None
+    peer = prepare_peers(peers, cleanrl, cleanrl_venv)
     figures = measure_num_envs(
         counts, env, steps, replay_capacity or 100_000, device,
         concurrency=modes, peers=peers, cleanrl=peer,
