@@ -79,7 +79,7 @@ def test_user_factory() -> None:
         build_network(f"{__name__}:wrong_shape_factory", (1, 4), 2, is_image=False)
     with pytest.raises(ConfigError, match="cannot be loaded"):
         build_network(f"{__name__}:missing", (1, 4), 2, is_image=False)
-    with pytest.raises(ConfigError, match="auto, nature_cnn, small_cnn, multi_input, mlp"):
+    with pytest.raises(ConfigError, match="auto, nature_cnn, der_cnn, small_cnn, multi_input, mlp"):
         build_network("resnet", (1, 4), 2, is_image=False)
 
 
@@ -303,3 +303,36 @@ def test_a_torso_that_fails_is_a_one_line_config_error(cartpole, factory, messag
     with pytest.raises(ConfigError, match=message) as error:
         build_q_network(config, (1, 4), 2, is_image=False)
     assert "\n" not in str(error.value)
+
+
+def test_der_cnn_is_data_efficient_rainbows_network() -> None:
+    network = build_network("der_cnn", (4, 84, 84), 6, is_image=True)
+    convs = [m for m in network.modules() if isinstance(m, nn.Conv2d)]
+    assert [(c.in_channels, c.out_channels, c.kernel_size, c.stride) for c in convs] == [
+        (4, 32, (5, 5), (5, 5)), (32, 64, (5, 5), (5, 5))
+    ]  # fmt: skip
+    linears = [m for m in network.modules() if isinstance(m, nn.Linear)]
+    assert [(m.in_features, m.out_features) for m in linears] == [(576, 256), (256, 6)]
+    frames = torch.randint(0, 256, (3, 4, 84, 84), dtype=torch.uint8)
+    features = nn.functional.relu(convs[1](nn.functional.relu(convs[0](frames.float() / 255))))
+    torch.testing.assert_close(network.torso(frames), features.flatten(1))
+    assert network(frames).shape == (3, 6)
+
+
+@pytest.mark.parametrize(
+    ("head", "widths"),
+    [("plain", [256, 6]), ("rainbow", [256, 7, 256, 6 * 7])],
+)
+def test_der_cnn_takes_the_family_heads_with_256_hidden_units(head: str, widths) -> None:
+    config = resolve_config("nature", env="pong", network="der_cnn", **HEADS[head])
+    network = build_q_network(config, (4, 84, 84), 6, is_image=True)
+    linears = [m for m in network.modules() if isinstance(m, (nn.Linear, NoisyLinear))]
+    assert [m.out_features for m in linears] == widths
+    assert linears[0].in_features == 576
+
+
+def test_der_cnn_refuses_what_it_cannot_read() -> None:
+    with pytest.raises(ConfigError, match=r"der_cnn' needs images of at least 25x25 pixels"):
+        build_network("der_cnn", (4, 20, 20), 3, is_image=True)
+    with pytest.raises(ConfigError, match="der_cnn' needs observations that are one image"):
+        build_network("der_cnn", (4, 8), 3, is_image=False)

@@ -19,6 +19,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from dqnlab.algorithm.augmentation import build_augmentation
 from dqnlab.algorithm.encoders import torch_dtype
 from dqnlab.algorithm.heads import has_noise, sample_noise
 from dqnlab.algorithm.losses import Transitions, build_loss
@@ -27,7 +28,7 @@ from dqnlab.algorithm.optim import build_optimizer
 from dqnlab.algorithm.policies import build_policy
 from dqnlab.algorithm.replay import Batch
 from dqnlab.algorithm.update_graph import CapturedUpdate, HostToDevice
-from dqnlab.config import Config
+from dqnlab.config import Config, derive_seeds
 from dqnlab.envs import Environment
 from dqnlab.envs.spaces import ObservationLayout
 from dqnlab.errors import ConfigError
@@ -110,6 +111,13 @@ class Agent:
         self.observation_layout = observation_layout
         if config.replay_sampling == "prioritized" and config.loss != "auto":
             self._check_priorities()
+        # The augmentation part draws from a generator of its own, saved with the agent.
+        is_image = self.input_shape is not None and is_image_observation(
+            self.input_shape[1:], np.dtype(self.observation_dtype or np.float32)
+        )
+        self.augmentation = build_augmentation(config, is_image)
+        self.augmentation_generator = torch.Generator(device=device)
+        self.augmentation_generator.manual_seed(derive_seeds(seed, 1)[0])
         self._optimizer_step: Callable[[], object] = self.optimizer.step
         if compile_update:
             self._loss_and_backward = torch.compile(self._loss_and_backward)  # type: ignore[method-assign]
@@ -237,6 +245,9 @@ class Agent:
             observations, next_observations = frames[:, :history], frames[:, 1:]
         else:
             observations, next_observations = frames, next_frames
+        if self.augmentation is not None:  # each drawn on its own (augmentation.py)
+            observations = self.augmentation(observations, self.augmentation_generator)
+            next_observations = self.augmentation(next_observations, self.augmentation_generator)
         # Zeroed in place, not set to None: fresh gradients every update made the C
         # allocator return memory and fault it back in, which cost more than the two
         # passes over the gradients that set_to_none=True saves (and a graph needs them
@@ -284,6 +295,7 @@ class Agent:
             "optimizer": self.optimizer.state_dict(),
             "rng": self.rng.bit_generator.state,
             "noise_rng": self.noise_generator.get_state(),
+            "augmentation_rng": self.augmentation_generator.get_state(),
             "updates": self.updates,
         }
 
@@ -296,6 +308,8 @@ class Agent:
         self.rng.bit_generator.state = state["rng"]
         if "noise_rng" in state:  # checkpoints from before the family have none
             self.noise_generator.set_state(state["noise_rng"].cpu())
+        if "augmentation_rng" in state:  # nor from before the augmentation part
+            self.augmentation_generator.set_state(state["augmentation_rng"].cpu())
         self.updates = int(state["updates"])
 
 

@@ -1,6 +1,7 @@
 """Q-networks: the Nature CNN for images, an MLP for vectors, a small CNN for small images,
-a network over every part of a structured observation, a user's own network, or a torso
-with the DQN family's heads.
+Data-efficient Rainbow's two-convolution network (`der_cnn`, Atari 100k), a network over
+every part of a structured observation, a user's own network, or a torso with the DQN
+family's heads.
 
 A network takes a batch of stacked observations of shape (batch, history, *frame_shape)
 in their stored dtype (uint8 images are scaled by 1/255 inside) and returns one Q-value
@@ -46,6 +47,9 @@ from dqnlab.envs.spaces import ObservationLayout
 from dqnlab.errors import ConfigError
 
 NATURE_HIDDEN_WIDTH = 512  # Mnih et al. 2015, Methods: the fully connected layer's units
+# Data-efficient Rainbow's hidden layer (van Hasselt et al. 2019, Appendix, "Q network:
+# hidden units" 256; Kaixhin/Rainbow --architecture data-efficient --hidden-size 256).
+DATA_EFFICIENT_HIDDEN_WIDTH = 256
 
 
 class NatureCNN(nn.Module):
@@ -86,15 +90,18 @@ class NatureTorso(nn.Module):
         return self.features(_scaled_planes(observations))
 
 
-def _image_planes(input_shape: Sequence[int]) -> tuple[int, int, int]:
+def _image_planes(
+    input_shape: Sequence[int], min_side: int = NATURE_MIN_SIDE
+) -> tuple[int, int, int]:
     """(input planes, height, width) of stacked images: images with channels, (history, C,
     H, W), give history*C planes."""
     history, *frame_shape = input_shape
     channels = history * (frame_shape[0] if len(frame_shape) == 3 else 1)
     height, width = frame_shape[-2:]
-    if min(height, width) < NATURE_MIN_SIDE:
+    if min(height, width) < min_side:
+        network = "the Nature CNN" if min_side == NATURE_MIN_SIDE else "network = 'der_cnn'"
         raise ConfigError(
-            f"the Nature CNN needs images of at least 36x36 pixels, got {height}x{width}"
+            f"{network} needs images of at least {min_side}x{min_side} pixels, got {height}x{width}"
         )
     return channels, height, width
 
@@ -111,6 +118,50 @@ def _scaled_planes(observations: torch.Tensor) -> torch.Tensor:
     channels-last, and gives a fresh tensor that can be scaled in place."""
     planes = torch.stack(observations.flatten(1, -3).unbind(1), dim=-1).permute(0, 3, 1, 2)
     return planes.float().div_(255.0)
+
+
+class DataEfficientCNN(nn.Module):
+    """Data-efficient Rainbow's network (van Hasselt, Hessel & Aslanides 2019, "When to use
+    parametric models in reinforcement learning?", Appendix: two convolutions, 32 filters
+    of 5x5 at stride 5 and 64 of 5x5 at stride 5, then 256 hidden units; Kaixhin/Rainbow
+    `model.py`, architecture data-efficient, likewise): 84x84 inputs give 64x3x3 = 576
+    features. Initialised as `NatureCNN` (PyTorch's defaults)."""
+
+    def __init__(self, input_shape: Sequence[int], num_actions: int) -> None:
+        super().__init__()
+        self.torso = DataEfficientTorso(input_shape)
+        self.head = nn.Sequential(
+            nn.Linear(self.torso.output_size, DATA_EFFICIENT_HIDDEN_WIDTH),
+            nn.ReLU(),
+            nn.Linear(DATA_EFFICIENT_HIDDEN_WIDTH, num_actions),
+        )
+
+    def forward(self, observations: torch.Tensor) -> torch.Tensor:
+        return self.head(self.torso(observations))
+
+
+class DataEfficientTorso(nn.Module):
+    """`DataEfficientCNN`'s two convolutions, flattened: `output_size` features per input."""
+
+    def __init__(self, input_shape: Sequence[int]) -> None:
+        super().__init__()
+        channels, height, width = _image_planes(input_shape, DATA_EFFICIENT_MIN_SIDE)
+        self.features = nn.Sequential(
+            nn.Conv2d(channels, 32, kernel_size=5, stride=5),
+            nn.ReLU(),
+            nn.Conv2d(32, 64, kernel_size=5, stride=5),
+            nn.ReLU(),
+            nn.Flatten(),
+        )
+        self.output_size = _flat_size(self.features, channels, height, width)
+        self.features.to(memory_format=torch.channels_last)  # as in NatureCNN
+
+    def forward(self, observations: torch.Tensor) -> torch.Tensor:
+        return self.features(_scaled_planes(observations))
+
+
+# The smallest side two 5x5 convolutions at stride 5 can read: 5 * 4 + 5.
+DATA_EFFICIENT_MIN_SIDE = 25
 
 
 class MLP(nn.Module):
@@ -315,6 +366,9 @@ def build_torso(
     if name == "nature_cnn":
         nature = NatureTorso(input_shape)
         return Torso(nature, nature.output_size, NATURE_HIDDEN_WIDTH)
+    if name == "der_cnn":
+        data_efficient = DataEfficientTorso(input_shape)
+        return Torso(data_efficient, data_efficient.output_size, DATA_EFFICIENT_HIDDEN_WIDTH)
     if name == "mlp":
         widths = config.mlp_hidden_sizes
         mlp = MLPTorso(input_shape, widths[:-1])
@@ -339,6 +393,8 @@ def build_network(
         return EncodedNetwork(encoder, num_actions, _encoded_widths(name, mlp_hidden_sizes))
     if name == "nature_cnn":
         return NatureCNN(input_shape, num_actions)
+    if name == "der_cnn":
+        return DataEfficientCNN(input_shape, num_actions)
     if name == "mlp":
         return MLP(input_shape, num_actions, mlp_hidden_sizes)
     network, probe = _user_module(
@@ -354,7 +410,7 @@ def build_network(
 
 # Networks that read their input through `encoders.ObservationEncoder` whatever the layout.
 ENCODED_NETWORKS = ("small_cnn", "multi_input")
-NETWORK_NAMES = ("auto", "nature_cnn", "small_cnn", "multi_input", "mlp")
+NETWORK_NAMES = ("auto", "nature_cnn", "der_cnn", "small_cnn", "multi_input", "mlp")
 
 
 def recorded_network_name(name: str, is_image: bool, layout: ObservationLayout | None) -> str:
@@ -385,9 +441,14 @@ def _network_name(name: str, is_image: bool, layout: ObservationLayout | None = 
         raise ConfigError(
             f"network = {name!r} is not one of: {', '.join(NETWORK_NAMES)}, or module:factory"
         )
-    if name in ("nature_cnn", "small_cnn") and not single_image:
+    if name in ("nature_cnn", "der_cnn", "small_cnn") and not single_image:
         raise ConfigError(
             f"network = {name!r} needs observations that are one image; use multi_input or auto"
+        )
+    if name == "der_cnn" and layout is not None and layout.packed:
+        raise ConfigError(
+            "network = 'der_cnn' reads one uint8 image (Atari's frames); this observation is "
+            "stored packed: use small_cnn, multi_input or auto"
         )
     if name == "small_cnn" and layout is None:
         raise ConfigError("network = 'small_cnn' needs the observation's layout")

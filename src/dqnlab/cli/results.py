@@ -19,8 +19,12 @@ if TYPE_CHECKING:
 def evaluate(
     run_dir: RunDir,
     checkpoint: Annotated[
-        str, typer.Option(help="best, last, or the path of a checkpoint file")
-    ] = "best",
+        str | None,
+        typer.Option(
+            help="best, last, or the path of a checkpoint file (default: the run's "
+            "final_eval_network, best unless its protocol says last, as Atari 100k's)"
+        ),
+    ] = None,
     episodes: Annotated[
         int | None, typer.Option(help="Games to play (default: final_eval_episodes, 30)")
     ] = None,
@@ -41,17 +45,20 @@ def evaluate(
 ) -> None:
     """The Nature final protocol: games of at most 18,000 frames, epsilon 0.05, no-op starts.
 
-    Evaluating the run's best network (the default) also saves the result as
+    Evaluating the run's final_eval_network (the default: its best network, or its last
+    under Atari 100k's protocol) also saves the result as
     RUN_DIR/final_evaluation.json, which `dqnlab report` reads, unless that file holds
     more games of the same network. With --video the games
     are played one after another on one emulator and filmed from the raw screens (every
     emulator frame, 60 frames/s); without it they are spread over every core (other
     games, the same protocol). A run trained with logger = tensorboard+wandb also gets
     the saved final evaluation and the videos in its W&B run's summary."""
-    from dqnlab.run.evaluate import final_evaluation, final_evaluation_record
+    from dqnlab.run.evaluate import final_evaluation, final_evaluation_record, final_network
     from dqnlab.run.rundir import load_final_evaluation, record_final_evaluation
     from dqnlab.run.wandb_log import add_to_summary, final_evaluation_values, video_media
 
+    protocol_network = final_network(run_dir)
+    checkpoint = checkpoint or protocol_network
     videos: list[Path] = []
     if video is None:
         result, network = final_evaluation(
@@ -76,7 +83,7 @@ def evaluate(
     )
     record = final_evaluation_record(result, config, network.path, network.step, seed)
     written = False
-    if checkpoint == "best":
+    if checkpoint == protocol_network:
         path, written = record_final_evaluation(run_dir, record)
         if written:
             typer.echo(f"dqnlab: saved as {path}")
@@ -110,7 +117,9 @@ def report(
     reference: Annotated[
         str,
         typer.Option(
-            help="Published curves behind Atari games' and the on-track table: dopamine or none"
+            help="dopamine: Dopamine's published curves behind Atari games' and the "
+            "on-track table; der-paper: the Atari 100k table against Data-Efficient "
+            "Rainbow's published scores, which join the aggregates; none"
         ),
     ] = "dopamine",
     baseline: Annotated[
@@ -171,13 +180,13 @@ def report_runs(
     aggregate: AggregateSettings | None = None,
 ) -> None:
     """Write the report of `run_dirs` into `out` and print its table and where its files are."""
-    from dqnlab.analysis.report import best_network_evaluator, format_table, write_report
+    from dqnlab.analysis.report import final_network_evaluator, format_table, write_report
 
     torch_device = resolve_device(device)
     written = write_report(
         run_dirs,
         out,
-        evaluate_missing=best_network_evaluator(torch_device, episodes=episodes),
+        evaluate_missing=final_network_evaluator(torch_device, episodes=episodes),
         echo=typer.echo,
         inspect_frames=frames,
         device=torch_device,

@@ -36,7 +36,8 @@ def sweep(
     games: Annotated[
         str | None,
         typer.Option(
-            help="A game set instead of --env: nature49, atari57, or a file of games (one a line)"
+            help="A game set instead of --env: nature49, atari57, atari100k (the Atari 100k "
+            "benchmark's 26), or a file of games (one a line)"
         ),
     ] = None,
     preset: BasePreset = None,
@@ -94,6 +95,8 @@ def sweep(
         env_kwargs=env_kwarg or [], wrappers=wrapper or [],
     )  # fmt: skip
     resources = plan.resources
+    for warning in plan.warnings:
+        typer.echo(f"dqnlab: warning: {warning}", err=True)
     with connected(address):
         check_resources(resources, node_resources())
         typer.echo(

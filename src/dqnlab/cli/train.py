@@ -118,3 +118,21 @@ def _run(config, run_dir: Path, device, progress: bool, resume: bool) -> None:  
             else "no periodic evaluation ran"
         )
     )
+    if config.final_eval_after_training and result.steps >= config.total_steps:
+        _final_evaluation(config, run_dir, device)
+
+
+def _final_evaluation(config, run_dir: Path, device) -> None:  # noqa: ANN001
+    """The run's final evaluation, saved as its final_evaluation.json."""
+    from dqnlab.config import DEFAULT_EVALUATION_SEED
+    from dqnlab.run.evaluate import evaluate_and_save
+
+    network = config.final_eval_network
+    typer.echo(
+        f"dqnlab: final evaluation of the {network} network, {config.final_eval_episodes} games"
+    )
+    record = evaluate_and_save(run_dir, network, None, DEFAULT_EVALUATION_SEED, device)
+    typer.echo(
+        f"dqnlab: {config.env}: {record['mean']:.2f} ± {record['std']:.2f} over "
+        f"{record['episodes']} games, saved in {run_dir}"
+    )

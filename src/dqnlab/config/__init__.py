@@ -4,7 +4,8 @@ Every faithful detail of the Nature DQN is one field of `Config` (`settings.py`)
 `nature` preset (`presets/nature.toml`) sets each to DeepMind's value. Units are part of
 every name: a *frame* is one raw emulator frame, a *step* is one agent decision.
 `files.py` reads and writes settings as text: presets, `--set` overrides, `config.toml`;
-`fingerprint.py` says what a checkpoint must match to be resumed, and derives the seeds.
+`fingerprint.py` says what a checkpoint must match to be resumed, and derives the seeds;
+`protocols.py` holds what a benchmark fixes (Atari 100k).
 """
 
 from dqnlab.config.files import (
@@ -28,6 +29,7 @@ from dqnlab.config.fingerprint import (
     derive_seeds,
     differing_settings,
 )
+from dqnlab.config.protocols import ATARI100K_PROTOCOL, atari100k_departures
 from dqnlab.config.settings import (
     CHOICES,
     FIELD_NAMES,
@@ -38,6 +40,7 @@ from dqnlab.config.settings import (
 
 __all__ = [
     "ADDED_WITH_DEFAULTS",
+    "ATARI100K_PROTOCOL",
     "CHOICES",
     "DEFAULT_EVALUATION_SEED",
     "FIELD_NAMES",
@@ -45,6 +48,7 @@ __all__ = [
     "USER_PARTS",
     "WANDB_PROJECT_FORBIDDEN",
     "Config",
+    "atari100k_departures",
     "config_fingerprint",
     "config_from_dict",
     "config_to_toml",

@@ -16,6 +16,7 @@ RESUMABLE_CHANGES = (
     "total_steps", "compile_update", "checkpoint_period_minutes", "checkpoint_period_steps",
     "checkpoints_kept", "on_checkpoint_error", "eval_networks_kept", "replay_storage",
     "replay_compression", "heldout_transitions", "update_graph", "periodic_eval_workers",
+    "final_eval_network", "final_eval_after_training",
 )  # fmt: skip
 
 
@@ -28,6 +29,7 @@ ADDED_WITH_DEFAULTS = (
     "replay_sampling", "priority_exponent", "priority_epsilon", "importance_exponent_start",
     "max_gradient_norm", "policy", "env_kwargs", "env_wrappers", "observation_images",
     "update_graph", "num_envs", "concurrency", "actor_refresh_updates", "periodic_eval",
+    "augmentation",
 )  # fmt: skip
 
 

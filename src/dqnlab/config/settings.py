@@ -70,7 +70,9 @@ class Config:
     # Observation history and network.
     history_length: int = _setting(4, "Agent observations stacked into one network input")
     network: str = _setting(
-        "auto", "auto, nature_cnn, small_cnn, multi_input, mlp, or module:factory(obs_shape, n)"
+        "auto",
+        "auto, nature_cnn, der_cnn (Data-efficient Rainbow's two 5x5 stride-5 convolutions "
+        "and 256 hidden units), small_cnn, multi_input, mlp, or module:factory(obs_shape, n)",
     )
     mlp_hidden_sizes: tuple[int, ...] = _setting((256, 256), "Hidden layer widths of the MLP")
     # Replay memory.
@@ -148,6 +150,14 @@ class Config:
     importance_exponent_start: float = _setting(
         0.4, "Prioritized replay's beta at the first update, annealed linearly to 1 at total_steps"
     )
+    augmentation: str = _setting(
+        "none",
+        "Data augmentation of the sampled observations inside the update, current and next "
+        "each drawn independently from the agent's checkpointed generator: none, "
+        "random_shift (DrQ, Kostrikov et al. 2020: pad 4 pixels by repeating the border, "
+        "crop back at a random offset, one per observation), or module:Class (your own; "
+        "docs: your own variant); image observations only",
+    )
     max_gradient_norm: float = _setting(
         0.0, "Gradients rescaled to this global L2 norm when above it (0: off; dueling: 10)"
     )
@@ -157,7 +167,10 @@ class Config:
     epsilon_decay_steps: int = _setting(1_000_000, "Agent steps of the linear epsilon anneal")
     # Evaluation.
     eval_epsilon: float = _setting(0.05, "Epsilon while evaluating")
-    eval_period_steps: int = _setting(250_000, "Training steps between periodic evaluations")
+    eval_period_steps: int = _setting(
+        250_000, "Training steps between periodic evaluations (0: none; the best network is "
+        "then the last)"
+    )  # fmt: skip
     eval_steps: int = _setting(125_000, "Agent steps of one periodic evaluation")
     eval_max_episode_frames: int = _setting(
         0, "Episode cap in raw frames during periodic evaluation (0: none)"
@@ -170,6 +183,18 @@ class Config:
     final_eval_episodes: int = _setting(30, "Episodes of the final evaluation")
     final_eval_max_episode_frames: int = _setting(
         18_000, "Episode cap of the final evaluation in raw frames (5 minutes)"
+    )
+    final_eval_network: str = _setting(
+        "best",
+        "The network the final evaluation plays (dqnlab report, dqnlab evaluate's default): "
+        "best (the best periodic evaluation's; the Nature protocol) or last (the network at "
+        "the end of training; Atari 100k)",
+    )
+    final_eval_after_training: bool = _setting(
+        False,
+        "Play the final evaluation (final_eval_network, final_eval_episodes) when training "
+        "reaches total_steps, into final_evaluation.json: a sweep's runs then end with "
+        "their scores (else dqnlab report or dqnlab evaluate plays it)",
     )
     eval_networks_kept: str = _setting(
         "best_and_worst",
@@ -285,12 +310,14 @@ CHOICES: dict[str, tuple[str, ...]] = {
     "replay_sampling": ("uniform", "prioritized"),
     "concurrency": ("none", "actor-learner"),
     "periodic_eval": ("inline", "background"),
+    "final_eval_network": ("best", "last"),
 }
 # Settings that take one of `CHOICES` or the `module:Name` of a user's own part.
 USER_PARTS: dict[str, tuple[str, ...]] = {
     "loss": ("auto",),
     "torso": ("auto",),
     "policy": ("epsilon_greedy",),
+    "augmentation": ("none", "random_shift"),
 }
 
 
@@ -308,7 +335,7 @@ def _validate(config: Config) -> None:
     positive = (
         "n_step", "noisy_sigma0", "action_repeat_frames", "screen_size", "history_length",
         "replay_capacity", "batch_size", "update_period_steps", "target_update_steps",
-        "learning_rate", "eval_period_steps", "eval_steps", "final_eval_episodes", "total_steps",
+        "learning_rate", "eval_steps", "final_eval_episodes", "total_steps",
         "replay_start_steps", "rmsprop_epsilon", "adam_epsilon", "checkpoints_kept",
         "checkpoint_period_minutes", "num_envs", "actor_refresh_updates",
     )  # fmt: skip
@@ -318,7 +345,7 @@ def _validate(config: Config) -> None:
     non_negative = (
         "seed", "noop_max_frames", "max_episode_frames", "reward_clip", "td_error_clip",
         "epsilon_decay_steps", "eval_max_episode_frames", "final_eval_max_episode_frames",
-        "checkpoint_period_steps", "heldout_transitions", "priority_epsilon",
+        "checkpoint_period_steps", "heldout_transitions", "priority_epsilon", "eval_period_steps",
         "priority_exponent", "max_gradient_norm", "periodic_eval_workers",
     )  # fmt: skip
     for name in non_negative:
@@ -348,6 +375,12 @@ def _validate(config: Config) -> None:
         raise ConfigError(
             f"update_graph = {config.update_graph!r} captures the update itself: leave "
             "compile_update = false"
+        )
+    if config.augmentation != "none" and config.update_graph != "off":
+        raise ConfigError(
+            f"augmentation = {config.augmentation!r} draws inside the update, which "
+            f"update_graph = {config.update_graph!r} would replay with the same draws: leave "
+            'update_graph = "off"'
         )
     if config.concurrency == "actor-learner" and config.update_graph != "off":
         raise ConfigError(

@@ -149,3 +149,26 @@ def final_evaluation(
         num_envs=num_envs,
     )
     return result, network
+
+
+def evaluate_and_save(
+    run_dir: Path, checkpoint: str, episodes: int | None, seed: int, device: torch.device
+) -> dict[str, Any]:
+    """`final_evaluation` of the run's `checkpoint` network, saved as its
+    final_evaluation.json (the record returned)."""
+    result, network = final_evaluation(run_dir, checkpoint, episodes, seed, device)
+    record = final_evaluation_record(result, network.config, network.path, network.step, seed)
+    rundir.save_final_evaluation(run_dir, record)
+    return record
+
+
+def final_network(run_dir: Path) -> str:
+    """The network a run's final evaluation plays: its `final_eval_network` ("best" or
+    "last"); "best" for an exported folder (its one network) or a run whose config cannot
+    be read (the error comes when the network is loaded)."""
+    if exported.is_exported_dir(run_dir):
+        return "best"
+    try:
+        return rundir.load_run_config(run_dir).final_eval_network
+    except DqnlabError:
+        return "best"

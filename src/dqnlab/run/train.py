@@ -198,7 +198,9 @@ class TrainingLoop:
                 for game in state.advance(remaining) if short else state.advance():
                     self._end_game(game)
                 step = state.steps
-                evaluated = self._crosses(first, step, config.eval_period_steps, after=True)
+                evaluated = config.eval_period_steps > 0 and self._crosses(
+                    first, step, config.eval_period_steps, after=True
+                )
                 if evaluated:
                     self._evaluate(step)
                 if self.background is not None and self.background.pending:

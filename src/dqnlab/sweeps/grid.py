@@ -114,10 +114,14 @@ def _safe(text: str) -> str:
     return re.sub(r"[^A-Za-z0-9_.=,+-]+", "_", text)
 
 
+GAME_SETS = ("nature49", "atari57", "atari100k")
+
+
 def game_set(name: str) -> list[str]:
-    """The games of `--games`: nature49 (the Nature table's 49), atari57, or a file with one
-    game per line (# starts a comment); each checked to be a game ale-py ships."""
-    from dqnlab.analysis.report.scores import load_reference_scores
+    """The games of `--games`: nature49 (the Nature table's 49), atari57, atari100k (the
+    Atari 100k benchmark's 26, Kaiser et al. 2019), or a file with one game per line (#
+    starts a comment); each checked to be a game ale-py ships."""
+    from dqnlab.analysis.report.scores import load_atari100k_scores, load_reference_scores
     from dqnlab.envs import check_env_name
 
     scores = load_reference_scores()
@@ -125,11 +129,13 @@ def game_set(name: str) -> list[str]:
         return sorted(game for game, row in scores.items() if row.nature_dqn is not None)
     if name == "atari57":
         return sorted(scores)
+    if name == "atari100k":
+        return sorted(load_atari100k_scores())
     path = Path(name)
     if not path.is_file():
         raise ConfigError(
-            f"--games {name!r} is not a game set; accepted: nature49, atari57, or a file "
-            "with one game per line"
+            f"--games {name!r} is not a game set; accepted: {', '.join(GAME_SETS)}, or a "
+            "file with one game per line"
         )
     games = [line.split("#")[0].strip() for line in path.read_text().splitlines()]
     games = [game for game in games if game]

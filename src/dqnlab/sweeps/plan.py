@@ -8,7 +8,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-from dqnlab.config import parse_overrides, parse_pairs
+from dqnlab.config import atari100k_departures, parse_overrides, parse_pairs
 from dqnlab.envs import check_env, is_atari
 from dqnlab.errors import DqnlabError
 from dqnlab.run.rundir import default_sweep_dir
@@ -24,6 +24,7 @@ class SweepPlan:
     sweep: Sweep
     resources: RunResources
     device: str  # "cuda" where the runs ask for GPUs, else "cpu"
+    warnings: tuple[str, ...] = ()  # to print before the runs start
 
 
 def plan_sweep_options(
@@ -51,7 +52,8 @@ def plan_sweep_options(
     added to every run's env_kwargs and env_wrappers."""
     if (env is None) == (games is None):
         raise DqnlabError(
-            "dqnlab sweep needs one of --env ENV[,ENV...] or --games nature49|atari57|FILE"
+            "dqnlab sweep needs one of --env ENV[,ENV...] or --games "
+            "nature49|atari57|atari100k|FILE"
         )
     if max_retries < 0:
         raise DqnlabError(f"--max-retries {max_retries} must be 0 or more")
@@ -72,7 +74,20 @@ def plan_sweep_options(
     if memory is not None and memory <= 0:
         raise DqnlabError(f"--memory-per-run {memory_per_run_gb} must be positive")
     resources = sweep_resources(sweep, cpus_per_run, gpus_per_run, memory)
-    return SweepPlan(sweep, resources, "cuda" if gpus_per_run > 0 else "cpu")
+    warnings = protocol_warnings(sweep) if games == "atari100k" else ()
+    return SweepPlan(sweep, resources, "cuda" if gpus_per_run > 0 else "cpu", warnings)
+
+
+def protocol_warnings(sweep: Sweep) -> tuple[str, ...]:
+    """One line per setting in which the sweep's runs depart from the Atari 100k protocol
+    (`config.atari100k_departures`): their table is not comparable with the published one,
+    which `dqnlab report` repeats."""
+    departures = sorted({d for run in sweep.runs for d in atari100k_departures(run.config)})
+    return tuple(
+        f"--games atari100k with {departure}: this sweep does not follow the Atari 100k "
+        "protocol and its scores are not comparable with the published ones"
+        for departure in departures
+    )
 
 
 def plan_ablation_options(

@@ -152,6 +152,12 @@ def check_sweep_marker(sweep_dir: Path, token: str, host: str) -> None:
 
 
 def trained_to_budget(run_dir: Path, total_steps: int) -> bool:
-    """Whether the run's last network has reached `total_steps`."""
+    """Whether the run's last network has reached `total_steps` and, for a run whose
+    protocol ends with its final evaluation (`final_eval_after_training`, Atari 100k's),
+    that evaluation is saved: a run killed while playing it is not done."""
     step = rundir.network_step(run_dir, "last") if rundir.is_run_dir(run_dir) else None
-    return step is not None and step >= total_steps
+    if step is None or step < total_steps:
+        return False
+    if not rundir.load_run_config(run_dir).final_eval_after_training:
+        return True
+    return rundir.load_final_evaluation(run_dir) is not None

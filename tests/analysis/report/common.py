@@ -13,7 +13,7 @@ from dqnlab.analysis.report import (
     ALL_EQUAL,
     AggregateSettings,
     Report,
-    best_network_evaluator,
+    final_network_evaluator,
 )
 from dqnlab.config import resolve_config
 from dqnlab.run import rundir
@@ -91,7 +91,7 @@ class CountingEvaluator:
 
     def __init__(self) -> None:
         self.calls: list[Path] = []
-        self.evaluate = best_network_evaluator(torch.device("cpu"), episodes=2)
+        self.evaluate = final_network_evaluator(torch.device("cpu"), episodes=2)
 
     def __call__(self, run_dir: Path) -> dict[str, Any]:
         self.calls.append(run_dir)

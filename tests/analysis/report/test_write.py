@@ -14,9 +14,9 @@ from matplotlib.collections import PolyCollection
 
 from dqnlab.analysis.report import (
     Report,
-    best_network_evaluator,
     build_report,
     curve_figure,
+    final_network_evaluator,
     find_runs,
     write_report,
 )
@@ -182,7 +182,7 @@ def test_the_final_evaluation_names_the_network_it_played(
         return result
 
     monkeypatch.setattr(dqnlab.run.evaluate, "play_games", play_then_replace_best)
-    record = best_network_evaluator(torch.device("cpu"), episodes=1)(run)
+    record = final_network_evaluator(torch.device("cpu"), episodes=1)(run)
     assert record["checkpoint_step"] == played_step
     assert load_final_evaluation(run)["checkpoint_step"] == played_step
 

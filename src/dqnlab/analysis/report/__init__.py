@@ -78,8 +78,8 @@ from dqnlab.analysis.report.write import (
     RESULTS_CSV,
     RESULTS_MD,
     SUMMARY_CSV,
-    best_network_evaluator,
     build_report,
+    final_network_evaluator,
     inspect_report_runs,
     write_report,
 )
@@ -120,7 +120,7 @@ __all__ = [
     "aggregate_scores",
     "aggregate_statistics",
     "fraction_above",
-    "best_network_evaluator",
+    "final_network_evaluator",
     "build_report",
     "curve_figure",
     "find_runs",

@@ -34,7 +34,7 @@ from dqnlab.run import rundir
 from dqnlab.run.logs import read_csv
 
 WINDOW_FRAMES = 1_000_000  # one Dopamine iteration: 250,000 agent steps of 4 frames
-REFERENCES = ("dopamine", "none")
+REFERENCES = ("dopamine", "der-paper", "none")  # der-paper: the Atari 100k table (atari100k.py)
 REFERENCE_PROTOCOL = "training games (sticky actions, ε = 0.01): not the Nature protocol"
 VERDICTS = ("below the range", "within the range", "above the range")
 DQN_FILE = "dopamine_dqn_curves.csv"  # game,iteration,run,train_return: the agent is dqn

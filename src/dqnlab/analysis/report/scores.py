@@ -72,6 +72,31 @@ def load_reference_scores() -> dict[str, ReferenceScores]:
     return scores
 
 
+@dataclass(frozen=True)
+class Atari100kScores:
+    """One row of `data/atari100k_scores.csv`: a game of the Atari 100k benchmark, its random
+    and human scores as Dopamine's `normalization_utils.py` gives them, and Data-Efficient
+    Rainbow's published mean after 100k steps (van Hasselt et al. 2019)."""
+
+    game: str  # as papers write it (RoadRunner)
+    ale_name: str  # as ale-py and --env (road_runner)
+    random: float
+    human: float
+    der: float
+
+
+def load_atari100k_scores() -> dict[str, Atari100kScores]:
+    """The 26 games of Atari 100k by ale-py name, in the file's (alphabetical) order."""
+    text = (resources.files("dqnlab") / "data" / "atari100k_scores.csv").read_text()
+    return {
+        row["ale_name"]: Atari100kScores(
+            row["game"], row["ale_name"], float(row["random"]), float(row["human"]),
+            float(row["der"]),
+        )
+        for row in csv.DictReader(io.StringIO(text))
+    }  # fmt: skip
+
+
 def human_normalised(score: float, random: float, human: float | None) -> float | None:
     """100 × (score − random) / (human − random): 0 is random play, 100 the human's score."""
     if human is None:

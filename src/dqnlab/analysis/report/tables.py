@@ -18,6 +18,7 @@ from dqnlab.analysis.report.aggregate import (
     Aggregates,
     Interval,
 )
+from dqnlab.analysis.report.atari100k import Atari100kRow, atari100k_markdown
 from dqnlab.analysis.report.curves import Curve, _count_text
 from dqnlab.analysis.report.legend import LEGEND, ON_TRACK_TEXT
 from dqnlab.analysis.report.reference import (
@@ -50,6 +51,7 @@ class Report:
     inspections: list[RunInspection] = field(default_factory=list)
     on_track: list[OnTrackRow] = field(default_factory=list)
     aggregates: Aggregates | None = None  # two games or more with human-normalised scores
+    atari100k: list[Atari100kRow] = field(default_factory=list)  # --reference der-paper
 
 
 @dataclass
@@ -409,6 +411,7 @@ def format_markdown(report: Report, out_dir: Path | None = None) -> str:
         parts += [_markdown_table(TABLE_HEADERS, [_table_cells(r) for r in report.rows]), ""]
     else:
         parts += ["No run has a final evaluation yet.", ""]
+    parts += atari100k_markdown(report.atari100k)
     if report.summary:
         parts += ["## Across games", ""]
         parts += [_markdown_table(SUMMARY_HEADERS, _summary_cells(report.summary)), ""]

@@ -27,8 +27,24 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from dqnlab.analysis.report.aggregate import Aggregates, AggregateSettings, aggregate_scores
+import numpy as np
+
+from dqnlab.analysis.report.aggregate import (
+    Aggregates,
+    AggregateSettings,
+    aggregate_statistics,
+    score_matrices,
+)
 from dqnlab.analysis.report.aggregate_figures import interval_figure, profile_figure
+from dqnlab.analysis.report.atari100k import (
+    ATARI100K_COLUMNS,
+    DER_PAPER,
+    Atari100kRow,
+    atari100k_record,
+    atari100k_rows,
+    protocol_notes,
+    published_matrix,
+)
 from dqnlab.analysis.report.curves import curve_figure, learning_curves
 from dqnlab.analysis.report.reference import (
     REFERENCES,
@@ -38,7 +54,12 @@ from dqnlab.analysis.report.reference import (
     reference_notes,
 )
 from dqnlab.analysis.report.runs import Group, RunResults, find_runs, group_runs, load_run
-from dqnlab.analysis.report.scores import load_reference_scores, result_rows, summary_rows
+from dqnlab.analysis.report.scores import (
+    load_atari100k_scores,
+    load_reference_scores,
+    result_rows,
+    summary_rows,
+)
 from dqnlab.analysis.report.tables import (
     AGGREGATE_COLUMNS,
     IMPROVEMENT_COLUMNS,
@@ -55,7 +76,7 @@ from dqnlab.analysis.report.tables import (
 from dqnlab.config import DEFAULT_EVALUATION_SEED
 from dqnlab.errors import DqnlabError
 from dqnlab.run import rundir
-from dqnlab.run.evaluate import final_evaluation, final_evaluation_record
+from dqnlab.run.evaluate import evaluate_and_save
 from dqnlab.run.wandb_log import add_to_summary, final_evaluation_values
 
 if TYPE_CHECKING:
@@ -63,6 +84,7 @@ if TYPE_CHECKING:
     from matplotlib.figure import Figure
 
 RESULTS_MD, RESULTS_CSV, SUMMARY_CSV = "results.md", "results.csv", "summary.csv"
+ATARI100K_CSV = "atari100k.csv"  # --reference der-paper
 Q_VALUES_DIR = "q-values"
 FIGURES = (".png", ".svg")  # each figure in both
 AGGREGATES_CSV, IMPROVEMENT_CSV = "aggregates.csv", "probability-of-improvement.csv"
@@ -74,18 +96,17 @@ AGGREGATE_FILES = (
 )
 
 
-def best_network_evaluator(
+def final_network_evaluator(
     device: torch.device, *, episodes: int | None = None, seed: int = DEFAULT_EVALUATION_SEED
 ) -> Callable[[Path], dict[str, Any]]:
-    """The final evaluation `write_report` plays where a run has none: the best network,
+    """The final evaluation `write_report` plays where a run has none: the run's
+    `final_eval_network` (its best network, or with Atari 100k's protocol its last),
     `episodes` games (None: the run's final_eval_episodes), saved as the run's
     final_evaluation.json, as `dqnlab evaluate RUN_DIR` does, so it is played once."""
 
     def evaluate(run_dir: Path) -> dict[str, Any]:
-        result, network = final_evaluation(run_dir, "best", episodes, seed, device)
-        record = final_evaluation_record(result, network.config, network.path, network.step, seed)
-        rundir.save_final_evaluation(run_dir, record)
-        return record
+        network = rundir.load_run_config(run_dir).final_eval_network
+        return evaluate_and_save(run_dir, network, episodes, seed, device)
 
     return evaluate
 
@@ -111,7 +132,10 @@ def build_report(
     bootstrap, None: the defaults); writes nothing but what `evaluate_missing` saves.
     `reference`: "dopamine" draws behind the Atari games' curves the published curve of
     each agent that a configuration matches (`reference.reference_agent`) and sets each
-    run beside its own agent's in the on-track table; "none" leaves both out."""
+    run beside its own agent's in the on-track table; "der-paper" adds the Atari 100k table
+    against Data-Efficient Rainbow's published scores, those scores as a configuration of
+    the aggregates, and a note for each run off the benchmark's protocol (`atari100k.py`);
+    "none" leaves all of them out."""
     if reference not in REFERENCES:
         raise DqnlabError(f"--reference {reference!r} is not one of: {', '.join(REFERENCES)}")
     runs = [load_run(path) for path in find_runs(run_dirs)]
@@ -127,13 +151,28 @@ def build_report(
     notes.extend(_group_notes(groups))
     references = load_reference_scores()
     rows = result_rows(groups, references)
-    aggregates, aggregate_notes = aggregate_scores(
-        groups, references, aggregate or AggregateSettings()
+    settings = aggregate or AggregateSettings()
+    aggregate_games, matrices, aggregate_notes = score_matrices(
+        groups, references, settings.baseline
     )
     notes.extend(aggregate_notes)
+    atari100k: list[Atari100kRow] = []
+    if reference == "der-paper":
+        atari100k = atari100k_rows(groups, load_atari100k_scores())
+        notes.extend(protocol_notes(runs))
+        notes.extend(_add_published_der(matrices, aggregate_games, settings.baseline))
+    aggregates = aggregate_statistics(matrices, aggregate_games, settings) if matrices else None
     curves = learning_curves(groups)
+    unevaluated = [run for run in runs if run.config.eval_period_steps == 0]
+    if unevaluated:
+        notes.append(
+            f"{len(unevaluated)} run(s) with eval_period_steps = 0 (Atari 100k's protocol "
+            "scores the last network alone): no periodic evaluation, no learning curve"
+        )
     for group in groups:
         for run in group.runs:
+            if run.config.eval_period_steps == 0:
+                continue
             if not run.evaluations:
                 notes.append(
                     f"{run.run_dir}: no periodic evaluation yet (evaluations.csv has no "
@@ -145,7 +184,8 @@ def build_report(
                     f"{run.run_dir}: {empty} periodic evaluation(s) finished no game within "
                     "eval_steps; the curve shows 0 there (DeepMind's Lua convention)"
                 )
-    games = list(dict.fromkeys(group.env for group in groups))
+    evaluated_periodically = [g for g in groups if any(r.config.eval_period_steps for r in g.runs)]
+    games = list(dict.fromkeys(group.env for group in evaluated_periodically))
     for game in games:
         if not any(curve.game == game for curve in curves):
             notes.append(f"{game}: no run has a periodic evaluation yet: no figure")
@@ -164,8 +204,26 @@ def build_report(
     summary = summary_rows(rows)
     return Report(
         runs, groups, rows, summary, curves, notes, evaluated, [],
-        aggregates=aggregates, on_track=on_track,
+        aggregates=aggregates, on_track=on_track, atari100k=atari100k,
     )  # fmt: skip
+
+
+def _add_published_der(
+    matrices: dict[str, np.ndarray], games: Sequence[str], baseline: str
+) -> list[str]:
+    """DER's published scores as one more configuration of the aggregates, over the same
+    games, where every game is one of Atari 100k's and the baseline is dqn_zoo's human
+    (the benchmark's); else a note saying why not."""
+    if not matrices:
+        return []
+    benchmark = load_atari100k_scores()
+    outside = [game for game in games if game not in benchmark]
+    if outside:
+        return [f"aggregates: {DER_PAPER} left out: {', '.join(outside)} not in Atari 100k"]
+    if baseline != "human":
+        return [f"aggregates: {DER_PAPER} left out: Atari 100k normalises by dqn_zoo's human"]
+    matrices[DER_PAPER] = published_matrix(games, benchmark)
+    return []
 
 
 def write_report(
@@ -181,7 +239,7 @@ def write_report(
 ) -> Report:
     """`build_report`, then write results.md, results.csv, summary.csv (2 games or more),
     curves-GAME.png/.svg and the aggregates' files into `out_dir`. `evaluate_missing`: see
-    `best_network_evaluator`; `echo` is told of each evaluation before it starts. With
+    `final_network_evaluator`; `echo` is told of each evaluation before it starts. With
     `inspect_frames` > 0, also the Q-values of each run's best and worst networks on that
     many frames (`inspect_report_runs`), into `out_dir`/q-values/RUN/. What an earlier
     report left in `out_dir` and this one does not write again (curves of other games,
@@ -196,6 +254,7 @@ def write_report(
     )
     out_dir.mkdir(parents=True, exist_ok=True)
     earlier = [*out_dir.glob("curves-*.png"), *out_dir.glob("curves-*.svg"), out_dir / SUMMARY_CSV]
+    earlier.append(out_dir / ATARI100K_CSV)
     earlier += [out_dir / name for name in AGGREGATE_FILES]
     earlier_inspections = [p for p in (out_dir / Q_VALUES_DIR).glob("*") if p.is_dir()]
     taken: set[str] = set()
@@ -207,6 +266,10 @@ def write_report(
     path = out_dir / RESULTS_CSV
     _write_csv(path, [_result_record(row) for row in report.rows], RESULT_COLUMNS)
     report.files.append(path)
+    if report.atari100k:
+        path = out_dir / ATARI100K_CSV
+        _write_csv(path, [atari100k_record(row) for row in report.atari100k], ATARI100K_COLUMNS)
+        report.files.append(path)
     if report.summary:
         path = out_dir / SUMMARY_CSV
         _write_csv(path, [_summary_record(row) for row in report.summary], SUMMARY_COLUMNS)
@@ -312,23 +375,25 @@ def _complete_final_evaluations(
     notes: list[str],
 ) -> list[Path]:
     """Play the final evaluation of each run that has none, or whose saved one is of an
-    older best network (the run trained on after it was played)."""
+    older network than the run's `final_eval_network` now (the run trained on after it
+    was played)."""
     evaluated = []
     for run in runs:
-        best_step = rundir.network_step(run.run_dir, "best")
+        kind = run.config.final_eval_network  # best, or last (Atari 100k)
+        network_step = rundir.network_step(run.run_dir, kind)
         saved = run.final_evaluation
         saved_step = saved.get("checkpoint_step") if saved is not None else None
-        stale = saved_step is not None and best_step is not None and saved_step != best_step
+        stale = saved_step is not None and network_step is not None and saved_step != network_step
         if saved is not None and not stale:
             continue
         why = (
-            f"its final evaluation is of the best network at step {saved_step}, the best "
-            f"is now the one at step {best_step}"
+            f"its final evaluation is of the {kind} network at step {saved_step}, the {kind} "
+            f"is now the one at step {network_step}"
             if stale
             else "no final evaluation"
         )
-        if best_step is None:
-            notes.append(f"{run.run_dir}: {why} and no best network yet: not in the table")
+        if network_step is None:
+            notes.append(f"{run.run_dir}: {why} and no {kind} network yet: not in the table")
         elif evaluate_missing is None:
             if stale:
                 notes.append(f"{run.run_dir}: {why}; the table shows the older one")
@@ -336,7 +401,7 @@ def _complete_final_evaluations(
                 notes.append(f"{run.run_dir}: {why}: not in the table")
         else:
             if echo is not None:
-                echo(f"dqnlab: {run.run_dir}: {why}: evaluating its best network")
+                echo(f"dqnlab: {run.run_dir}: {why}: evaluating its {kind} network")
             run.final_evaluation = evaluate_missing(run.run_dir)
             evaluated.append(run.run_dir)
     return evaluated
