@@ -9,6 +9,7 @@ import torch
 from dqnlab.bench import flops, variants
 from dqnlab.bench.variants import FAMILY, measure_variants, parse_variants
 from dqnlab.errors import ConfigError
+from dqnlab.run.state import TIMED_PARTS
 
 
 def test_every_variants_figures_and_their_ratios(monkeypatch) -> None:
@@ -32,6 +33,16 @@ def test_every_variants_figures_and_their_ratios(monkeypatch) -> None:
         assert figures[f"{preset}_train_ratio_vs_nature"] == pytest.approx(
             figures[f"{preset}_train_frames_per_second"] / figures["nature_train_frames_per_second"]
         )
+        # One whole run: its total_steps at the training rate; each timed part's share.
+        steps_per_second = figures[f"{preset}_train_frames_per_second"] / 4
+        assert figures[f"{preset}_training_minutes_per_run"] == pytest.approx(
+            50_000_000 / steps_per_second / 60
+        )
+        assert figures[f"{preset}_eval_minutes_per_10k_steps"] == pytest.approx(
+            10_000 / (figures[f"{preset}_eval_frames_per_second"] / 4) / 60
+        )
+        split = [figures[f"{preset}_train_split_{part}"] for part in TIMED_PARTS + ("other",)]
+        assert sum(split) == pytest.approx(1.0) and figures[f"{preset}_train_split_update"] > 0
     assert figures["prioritized_train_ratio_vs_double"] == pytest.approx(
         figures["prioritized_train_frames_per_second"] / figures["double_train_frames_per_second"]
     )

@@ -43,6 +43,29 @@ def test_train_and_evaluate_cartpole(tmp_path: Path) -> None:
     assert json.loads((run / "final_evaluation.json").read_text()) == result
 
 
+def test_a_run_that_ends_with_its_final_evaluation_of_the_last_network(tmp_path: Path) -> None:
+    # Atari 100k's protocol on CartPole: no periodic evaluation, the last network's final
+    # evaluation played when training reaches its budget, and `evaluate` defaults to it.
+    run = tmp_path / "cartpole"
+    trained = dqnlab(
+        "train", "--env", "CartPole-v1", "--steps", "300", "--run-dir", str(run),
+        "--set", "replay_start_steps=100", "--set", "eval_period_steps=0",
+        "--set", "final_eval_network='last'", "--set", "final_eval_after_training=true",
+        "--set", "final_eval_episodes=2", "--no-progress",
+    )  # fmt: skip
+    assert trained.returncode == 0, trained.stderr
+    assert "final evaluation of the last network, 2 games" in trained.stdout
+    assert (run / "evaluations.csv").read_text().count("\n") <= 1  # its header at most
+    saved = json.loads((run / "final_evaluation.json").read_text())
+    assert saved["checkpoint_step"] == 300 and saved["episodes"] == 2
+    assert saved["checkpoint"].endswith("last.pt")
+    # `dqnlab evaluate` plays the same network by default, and keeps the record of more games.
+    again = dqnlab("evaluate", str(run), "--episodes", "1")
+    assert again.returncode == 0, again.stderr
+    assert "kept" in again.stdout
+    assert json.loads((run / "final_evaluation.json").read_text()) == saved
+
+
 def test_train_and_evaluate_an_atari_game(tmp_path: Path) -> None:
     run = tmp_path / "pong"
     trained = dqnlab(

@@ -29,3 +29,6 @@ def test_game_sets() -> None:
     nature = game_set("nature49")
     assert len(nature) == 49 and "pong" in nature and "surround" not in nature
     assert len(game_set("atari57")) == 57
+    atari100k = game_set("atari100k")  # Kaiser et al. 2019, Table 1's 26 games
+    assert len(atari100k) == 26 and {"road_runner", "up_n_down", "private_eye"} <= set(atari100k)
+    assert not {"montezuma_revenge", "enduro", "space_invaders"} & set(atari100k)

@@ -92,3 +92,15 @@ def test_env_kwargs_and_wrappers_reach_every_run_and_may_be_varied(tmp_path: Pat
         )  # fmt: skip
     with pytest.raises(DqnlabError, match="^pong: env_kwargs apply to Gymnasium environments"):
         plan_sweep_options(**sweep_options(env="pong", vary=[], settings=[], env_kwargs=["a=1"]))
+
+
+def test_an_atari100k_sweep_off_the_protocol_is_warned_of(tmp_path: Path) -> None:
+    options = sweep_options(env=None, games="atari100k", preset="der", seeds=1, vary=[],
+                            settings=[], steps=None, sweep_dir=tmp_path / "s")  # fmt: skip
+    assert plan_sweep_options(**options).warnings == ()
+    off = plan_sweep_options(**{**options, "settings": ["sticky_action_probability=0.25"]})
+    (warning,) = off.warnings
+    assert warning.startswith("--games atari100k with sticky_action_probability = 0.25 (the ")
+    assert "not comparable with the published ones" in warning and "\n" not in warning
+    shorter = plan_sweep_options(**{**options, "steps": 50_000}).warnings
+    assert [w.split(" (")[0] for w in shorter] == ["--games atari100k with total_steps = 50000"]

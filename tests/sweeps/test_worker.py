@@ -88,3 +88,29 @@ def test_a_runs_subprocess_stops_itself_once_when_its_worker_dies(tmp_path: Path
         time.sleep(0.1)
     time.sleep(1.5)  # a second signal would come now
     assert record.read_text().split() == ["started", "TERM"]
+
+
+def test_a_run_is_done_once_trained_and_evaluated_where_its_protocol_says_so(
+    tmp_path: Path,
+) -> None:
+    """A run killed while playing the final evaluation its protocol ends with (Atari 100k's)
+    is not done: the sweep starts it again and it plays the evaluation."""
+    import torch
+
+    from dqnlab.config import resolve_config
+    from dqnlab.run.rundir import prepare_run_dir, save_final_evaluation
+    from dqnlab.run.train import train
+    from dqnlab.sweeps.worker import trained_to_budget
+
+    for ends_with_evaluation in (False, True):
+        run_dir = tmp_path / f"run-{ends_with_evaluation}"
+        config = resolve_config(
+            "classic", env="CartPole-v1", total_steps=200, replay_start_steps=100,
+            eval_period_steps=0, final_eval_after_training=ends_with_evaluation,
+        )  # fmt: skip
+        prepare_run_dir(run_dir, force=False)
+        train(config, run_dir, torch.device("cpu"), progress=False, tensorboard=False)
+        assert not trained_to_budget(run_dir, 300)
+        assert trained_to_budget(run_dir, 200) is not ends_with_evaluation
+        save_final_evaluation(run_dir, {"mean": 1.0, "checkpoint_step": 200})
+        assert trained_to_budget(run_dir, 200)

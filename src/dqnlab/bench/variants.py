@@ -6,8 +6,11 @@ priority update that follows every update), the update alone (with its GFLOP/s a
 dense float32 matrix multiply's timed right after it, `flops.py`), and training frames/s once
 learning runs, measured in alternating rounds so that a change in the machine's load falls
 on every variant alike. Frames/s are also given as a ratio to the `nature` preset's in the
-same run (and prioritized replay's to uniform's). Besides, the prioritized draw and update
-on a full 1M-slot sum tree: the replay's part of one prioritized update at Nature's size.
+same run (and prioritized replay's to uniform's), with the share of each timed part of a
+step (environment, acting, storing, sampling, update), and the minutes one whole run of the
+preset takes here (`_run_minutes`: `--variants der,drq_epsilon` gives Atari 100k's minutes
+per game). Besides, the prioritized draw and update on a full 1M-slot sum tree: the
+replay's part of one prioritized update at Nature's size.
 """
 
 from __future__ import annotations
@@ -24,6 +27,7 @@ from dqnlab.bench.flops import agent_network_flops, measure_matmul, update_flop_
 from dqnlab.bench.measure import machine_figures, measure_training
 from dqnlab.config import Config, preset_names, resolve_config
 from dqnlab.errors import ConfigError
+from dqnlab.run.lockstep import play_games
 from dqnlab.run.state import TrainingState
 
 FAMILY = ("nature", "double", "dueling", "prioritized", "c51", "rainbow")
@@ -66,6 +70,28 @@ def _median_us(action: Any, repeats: int) -> float:
         action()
         timings.append(time.perf_counter() - start)
     return float(np.median(timings) * 1e6)
+
+
+def _run_minutes(
+    preset: str, state: TrainingState, train_frames_per_second: float, steps: int
+) -> dict[str, float]:
+    """How long one whole run of the preset takes here: its total_steps at the training
+    rate measured once learning runs (an upper bound: the replay-start steps do not
+    update), and its final evaluation's rate (eval_epsilon, every core) per 10k agent
+    steps, since how many steps its games last depends on what the agent learned."""
+    config = state.config
+    steps_per_second = train_frames_per_second / config.action_repeat_frames
+    evaluation = play_games(
+        state.agent, config, config.final_eval_episodes, config.seed,
+        epsilon=config.eval_epsilon, max_episode_frames=config.final_eval_max_episode_frames,
+        max_steps=steps,
+    )  # fmt: skip
+    eval_steps_per_second = evaluation.frames_per_second / config.action_repeat_frames
+    return {
+        f"{preset}_training_minutes_per_run": config.total_steps / steps_per_second / 60,
+        f"{preset}_eval_frames_per_second": evaluation.frames_per_second,
+        f"{preset}_eval_minutes_per_10k_steps": 10_000 / eval_steps_per_second / 60,
+    }
 
 
 def measure_variants(
@@ -122,12 +148,18 @@ def measure_variants(
             state.advance()
         states[preset] = state
     runs: dict[str, list[float]] = {preset: [] for preset in presets}
+    splits: dict[str, dict[str, float]] = {}
     for _ in range(rounds):
         for preset, state in states.items():
-            runs[preset].append(measure_training(state, steps)[0])
+            frames_per_second, splits[preset] = measure_training(state, steps)
+            runs[preset].append(frames_per_second)
     for preset, state in states.items():
-        figures[f"{preset}_train_frames_per_second"] = float(np.mean(runs[preset]))
+        frames_per_second = float(np.mean(runs[preset]))
+        figures[f"{preset}_train_frames_per_second"] = frames_per_second
         figures[f"{preset}_train_frames_per_second_runs"] = [round(f, 1) for f in runs[preset]]
+        for part, fraction in splits[preset].items():
+            figures[f"{preset}_train_split_{part}"] = fraction
+        figures.update(_run_minutes(preset, state, frames_per_second, steps))
         state.close()
     base = figures.get("nature_train_frames_per_second")
     for preset in presets:

@@ -16,7 +16,8 @@ MATCHING_TEXT = (
 
 LEGEND = [
     "- **Score**: the final evaluation of each run's best network (the network of the "
-    "periodic evaluation with the highest mean): whole games of at most "
+    "periodic evaluation with the highest mean), or its last where its protocol says so "
+    '(`final_eval_network = "last"`, Atari 100k\'s): whole games of at most '
     "final_eval_max_episode_frames frames (5 minutes in the Nature protocol) at "
     "eval_epsilon, after random no-op starts. With one seed: that run's mean ± s.d. over "
     "its games. With several seeds: the mean of the seeds' means ± the s.d. of the seeds' "

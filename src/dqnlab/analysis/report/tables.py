@@ -465,6 +465,7 @@ def _run_cells(report: Report) -> list[list[str]]:
             else:
                 score = _plus_minus(float(final["mean"]), float(final["std"]))
                 step = final.get("checkpoint_step")
-                text = f"{score} over {final['episodes']} games, best network of step {step}"
+                kind = run.config.final_eval_network  # best, or last (Atari 100k)
+                text = f"{score} over {final['episodes']} games, {kind} network of step {step}"
             cells.append([group.env, group.label, str(run.config.seed), str(run.run_dir), text])
     return cells

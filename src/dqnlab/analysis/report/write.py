@@ -141,7 +141,13 @@ def build_report(
     runs = [load_run(path) for path in find_runs(run_dirs)]
     notes: list[str] = []
     for run in runs:
-        if not run.finished:
+        if _scored_when_finished(run):
+            notes.append(
+                f"{run.run_dir}: training (newest checkpoint at step {run.steps} of "
+                f"{run.config.total_steps}): its protocol scores the last network once "
+                "trained, so it is not in the tables yet"
+            )
+        elif not run.finished:
             notes.append(
                 f"{run.run_dir}: unfinished (newest checkpoint at step {run.steps} of "
                 f"{run.config.total_steps}): its scores are of its best network so far"
@@ -379,6 +385,8 @@ def _complete_final_evaluations(
     was played)."""
     evaluated = []
     for run in runs:
+        if _scored_when_finished(run):
+            continue
         kind = run.config.final_eval_network  # best, or last (Atari 100k)
         network_step = rundir.network_step(run.run_dir, kind)
         saved = run.final_evaluation
@@ -405,6 +413,13 @@ def _complete_final_evaluations(
             run.final_evaluation = evaluate_missing(run.run_dir)
             evaluated.append(run.run_dir)
     return evaluated
+
+
+def _scored_when_finished(run: RunResults) -> bool:
+    """Whether `run` is still training under a protocol that scores its last network
+    (Atari 100k's): a network halfway through is not what the benchmark scores, so the
+    report neither plays nor shows its final evaluation until training is done."""
+    return run.config.final_eval_network == "last" and not run.finished
 
 
 def _group_notes(groups: Sequence[Group]) -> list[str]:
