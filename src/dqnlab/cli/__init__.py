@@ -6,6 +6,7 @@ from __future__ import annotations
 import typer
 
 from dqnlab.cli import bench, hub, listings, results, sweeps, train
+from dqnlab.cli.allocator import keep_freed_memory
 from dqnlab.cli.common import run_command
 
 app = typer.Typer(
@@ -37,5 +38,7 @@ for command in (
 
 def main() -> None:
     """Entry point: a DqnlabError ends the command with one line and exit status 2 (75
-    for a run directory another process trains: `lease.LeaseHeld`)."""
+    for a run directory another process trains: `lease.LeaseHeld`). glibc is first told to
+    keep freed memory for reuse (`allocator.py`)."""
+    keep_freed_memory()
     run_command(app)
