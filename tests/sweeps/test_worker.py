@@ -94,13 +94,14 @@ def test_a_run_is_done_once_trained_and_evaluated_where_its_protocol_says_so(
     tmp_path: Path,
 ) -> None:
     """A run killed while playing the final evaluation its protocol ends with (Atari 100k's)
-    is not done: the sweep starts it again and it plays the evaluation."""
+    is not done: the sweep starts it again and it plays the evaluation, and `dqnlab status`
+    does not call it done meanwhile."""
     import torch
 
+    from dqnlab.analysis.status import run_status
     from dqnlab.config import resolve_config
-    from dqnlab.run.rundir import prepare_run_dir, save_final_evaluation
+    from dqnlab.run.rundir import prepare_run_dir, save_final_evaluation, trained_to_budget
     from dqnlab.run.train import train
-    from dqnlab.sweeps.worker import trained_to_budget
 
     for ends_with_evaluation in (False, True):
         run_dir = tmp_path / f"run-{ends_with_evaluation}"
@@ -112,5 +113,7 @@ def test_a_run_is_done_once_trained_and_evaluated_where_its_protocol_says_so(
         train(config, run_dir, torch.device("cpu"), progress=False, tensorboard=False)
         assert not trained_to_budget(run_dir, 300)
         assert trained_to_budget(run_dir, 200) is not ends_with_evaluation
+        assert (run_status(run_dir).state == "done") is not ends_with_evaluation
         save_final_evaluation(run_dir, {"mean": 1.0, "checkpoint_step": 200})
         assert trained_to_budget(run_dir, 200)
+        assert run_status(run_dir).state == "done"

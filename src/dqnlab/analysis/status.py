@@ -175,7 +175,7 @@ def run_status(run_dir: Path, planned: dict[str, Any] | None = None) -> RunStatu
         status.steps_per_second = _rate(episodes, "step")
     elif last_end is not None and last_end.get("outcome") in ("done", "failed", "stopped"):
         status.state = last_end["outcome"]
-    elif _trained_to_budget(run_dir, total):
+    elif rundir.trained_to_budget(run_dir, total):
         status.state = "done"
     elif starts and last_end is None and time.time() - (status.started_at or 0) < STARTING_SECONDS:
         status.state = "running"  # started, not holding its lease yet
@@ -184,11 +184,6 @@ def run_status(run_dir: Path, planned: dict[str, Any] | None = None) -> RunStatu
     if status.state == "done":
         status.step = total
     return status
-
-
-def _trained_to_budget(run_dir: Path, total_steps: int) -> bool:
-    step = rundir.network_step(run_dir, "last")
-    return step is not None and step >= total_steps
 
 
 def _rate(rows: list[dict[str, str]], column: str) -> float | None:

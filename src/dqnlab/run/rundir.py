@@ -313,6 +313,18 @@ def network_step(run_dir: Path, name: str) -> int | None:
     return int(step) if step is not None else None
 
 
+def trained_to_budget(run_dir: Path, total_steps: int) -> bool:
+    """Whether the run is done: its last network has reached `total_steps` and, for a run
+    whose protocol ends with its final evaluation (`final_eval_after_training`, Atari
+    100k's), that evaluation is saved, so a run killed while playing it is not done."""
+    step = network_step(run_dir, "last") if is_run_dir(run_dir) else None
+    if step is None or step < total_steps:
+        return False
+    if not load_run_config(run_dir).final_eval_after_training:
+        return True
+    return load_final_evaluation(run_dir) is not None
+
+
 def agent_from_network(
     payload: dict[str, Any], path: Path, seed: int, device: torch.device
 ) -> tuple[Agent, Config, int]:

@@ -18,6 +18,7 @@ from dqnlab.analysis import status as run_states
 from dqnlab.errors import DqnlabError
 from dqnlab.run import rundir
 from dqnlab.run.lease import LEASE_HELD_EXIT_STATUS, release_dead_owner, wait_until_free
+from dqnlab.run.rundir import trained_to_budget
 
 STOP_WAIT_SECONDS = 300.0  # Ctrl-C: how long runs may take to write their checkpoint
 # `dqnlab train` exit statuses after a stop request (SIGINT, SIGTERM) and SIGKILL by shell.
@@ -149,15 +150,3 @@ def check_sweep_marker(sweep_dir: Path, token: str, host: str) -> None:
             f"({rundir.SWEEP_FILE} {'missing' if recorded is None else 'of another sweep'}): "
             "the sweep directory must be on storage every node mounts at the same path"
         )
-
-
-def trained_to_budget(run_dir: Path, total_steps: int) -> bool:
-    """Whether the run's last network has reached `total_steps` and, for a run whose
-    protocol ends with its final evaluation (`final_eval_after_training`, Atari 100k's),
-    that evaluation is saved: a run killed while playing it is not done."""
-    step = rundir.network_step(run_dir, "last") if rundir.is_run_dir(run_dir) else None
-    if step is None or step < total_steps:
-        return False
-    if not rundir.load_run_config(run_dir).final_eval_after_training:
-        return True
-    return rundir.load_final_evaluation(run_dir) is not None

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from dqnlab.analysis.report import ALL_EQUAL, AggregateSettings, write_report
+from dqnlab.analysis.report import ALL_EQUAL, AggregateSettings, format_table, write_report
 from dqnlab.analysis.report.atari100k import DER_PAPER
 from dqnlab.config import resolve_config
 from dqnlab.run.logs import read_csv
@@ -74,6 +74,10 @@ def test_the_table_and_aggregates_against_numbers_worked_out_by_hand(tmp_path: P
     assert road in markdown
     assert "not the IQM over per-run scores" in markdown
     assert "3000 ± 1.0 over 100 games, last network of step 100000" in markdown
+    console = format_table(report)
+    assert "Atari 100k, against Data-Efficient Rainbow's published scores" in console
+    (krull,) = [line for line in console.splitlines() if line.startswith("Krull ")]
+    assert krull.split()[-4:] == ["3000.0", "2851.5", "1.313", "1.174"]
 
     # The aggregates: dqnlab's runs and DER's published scores over the same three games.
     aggregates = report.aggregates

@@ -111,6 +111,17 @@ def atari100k_record(row: Atari100kRow) -> dict[str, object]:
     }
 
 
+def atari100k_cells(rows: Sequence[Atari100kRow]) -> tuple[list[str], list[list[str]]]:
+    """The per-game table for a terminal: headers and one row of cells per game."""
+    headers = ["Game", "Configuration", "Runs", "Score", "DER (paper)", "HNS", "DER HNS"]
+    cells = [
+        [row.title, row.configuration, str(len(row.run_scores)), f"{row.score:.1f}",
+         f"{row.der:g}", f"{row.hns / 100:.3f}", f"{row.der_hns / 100:.3f}"]
+        for row in rows
+    ]  # fmt: skip
+    return headers, cells
+
+
 def atari100k_markdown(rows: Sequence[Atari100kRow]) -> list[str]:
     """The benchmark's section of results.md: the per-game table, then the mean and median
     human-normalised score of each configuration and of DER's published scores over the

@@ -18,7 +18,7 @@ from dqnlab.analysis.report.aggregate import (
     Aggregates,
     Interval,
 )
-from dqnlab.analysis.report.atari100k import Atari100kRow, atari100k_markdown
+from dqnlab.analysis.report.atari100k import Atari100kRow, atari100k_cells, atari100k_markdown
 from dqnlab.analysis.report.curves import Curve, _count_text
 from dqnlab.analysis.report.legend import LEGEND, ON_TRACK_TEXT
 from dqnlab.analysis.report.reference import (
@@ -386,6 +386,9 @@ def format_table(report: Report) -> str:
         text = _aligned(TABLE_HEADERS, [_table_cells(row) for row in report.rows])
     else:
         text = "no run has a final evaluation: nothing to tabulate"
+    if report.atari100k:
+        text += "\n\nAtari 100k, against Data-Efficient Rainbow's published scores\n"
+        text += _aligned(*atari100k_cells(report.atari100k))
     if report.summary:
         text += "\n\n" + _aligned(SUMMARY_HEADERS, _summary_cells(report.summary))
     if report.on_track:
