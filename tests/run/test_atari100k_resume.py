@@ -11,11 +11,12 @@ import pytest
 from tests.run.test_resume import assert_same_run, train_killed_and_resumed
 
 # Short runs of the presets on Pong: periodic evaluations and held-out transitions back on
-# so that `assert_same_run` compares them too; no final evaluation (nothing to resume).
+# so that `assert_same_run` compares them too; no final evaluation (nothing to resume);
+# minibatches of 8 (what is tested is the resume, not the presets' batch size).
 TINY = [
-    "--env", "pong", "--steps", "400", "--seed", "4",
-    "--set", "replay_start_steps=100", "--set", "replay_capacity=400",
-    "--set", "eval_period_steps=200", "--set", "eval_steps=50",
+    "--env", "pong", "--steps", "300", "--seed", "4", "--set", "batch_size=8",
+    "--set", "replay_start_steps=100", "--set", "replay_capacity=300",
+    "--set", "eval_period_steps=150", "--set", "eval_steps=50",
     "--set", "checkpoint_period_steps=40",
     "--set", "final_eval_after_training=false", "--set", "heldout_transitions=50",
     "--no-progress", "--device", "cpu",
