@@ -1,20 +1,36 @@
-"""Heads of the DQN family's Q-networks: dueling streams, noisy linear layers, C51 logits.
+"""Heads of the DQN family's Q-networks: dueling streams, noisy linear layers, C51 logits,
+and a user's own head (`head = module:factory`).
 
-A head maps a torso's features (batch, features) to outputs per action, (batch, actions,
-outputs_per_action): one Q-value per action, or with C51 the logits of each action's
-return distribution on its atoms. The parts compose: any head may be dueling, noisy and
-distributional at once, which is Rainbow's head (Hessel et al. 2018; dqn-family.md 6.1).
-`networks.py` puts a head on a torso.
+A head is a part: a module that maps a torso's features (batch, features) to outputs per
+action, (batch, actions, outputs_per_action): one Q-value per action, the logits of each
+action's return distribution with C51, quantiles for QR-DQN... Its optional method
+`q_values(outputs)` gives the Q-values (batch, actions) that acting, evaluation and the
+TD loss use; without it they are the mean over the outputs (the Q-value itself for one
+output, the expectation of equally weighted quantiles). The loss part reads the outputs
+themselves through the network's `outputs(observations)`.
+
+A head factory is called as `factory(in_features, num_actions, config, hidden_width)`:
+the torso's feature count, the action count, the run's settings and the width of the
+hidden layer the network setting puts before its outputs (the Nature CNN's 512; None for a
+user's torso), which a head may use or ignore. `standard_head` is the factory of
+`head = "auto"`: `QHead`, or `CategoricalHead` with C51, whose parts compose (any head may
+be dueling, noisy and distributional at once, which is Rainbow's head; Hessel et al. 2018,
+dqn-family.md 6.1). `networks.py` puts a head on a torso.
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from typing import Any
 
 import torch
 import torch.nn.functional as F
 from torch import nn
+
+from dqnlab.config import Config
+from dqnlab.errors import ConfigError
+from dqnlab.parts import load_part
 
 # Wang et al. 2016 rescale the combined gradient entering the last convolutional layer by
 # 1/sqrt(2), as both streams send one into the torso (dqn-family.md 2.1, secondary copies).
@@ -198,3 +214,122 @@ class QHead(nn.Module):
         value = self.value(features).unsqueeze(1)  # (batch, 1, outputs_per_action)
         advantage = self.advantage(features).unflatten(1, shape)
         return value + advantage - advantage.mean(dim=1, keepdim=True)
+
+
+class CategoricalHead(QHead):
+    """C51 (Bellemare et al. 2017; dqn-family.md 5.1): per action, the logits of a
+    categorical distribution of the return on the atoms `support` (atoms,),
+    z_i = v_min + i dz; its Q-values are the expected returns sum_i z_i p_i. The support is
+    a non-persistent buffer: it follows from the configuration, which every network file
+    stores, and the state dict stays that of `QHead`."""
+
+    support: torch.Tensor
+
+    def __init__(
+        self,
+        in_features: int,
+        hidden_width: int | None,
+        num_actions: int,
+        atoms: int,
+        v_min: float,
+        v_max: float,
+        *,
+        dueling: bool = False,
+        noisy: bool = False,
+        noisy_sigma0: float = 0.5,
+    ) -> None:
+        super().__init__(
+            in_features,
+            hidden_width,
+            num_actions,
+            atoms,
+            dueling=dueling,
+            noisy=noisy,
+            noisy_sigma0=noisy_sigma0,
+        )
+        self.atom_spacing = (v_max - v_min) / (atoms - 1)
+        # z_i = v_min + i dz as defined, in float64 so that the last atom is v_max to float32.
+        support = v_min + torch.arange(atoms, dtype=torch.float64) * self.atom_spacing
+        self.register_buffer("support", support.float(), persistent=False)
+
+    def q_values(self, logits: torch.Tensor) -> torch.Tensor:
+        return (F.softmax(logits, dim=2) * self.support).sum(dim=2)
+
+    def log_probabilities(self, logits: torch.Tensor) -> torch.Tensor:
+        """log p_i per action, (batch, actions, atoms): `log_softmax` over the atoms, finite
+        where log(softmax) would give -inf for a vanishing probability."""
+        return F.log_softmax(logits, dim=2)
+
+
+def head_q_values(head: nn.Module, outputs: torch.Tensor) -> torch.Tensor:
+    """The Q-values (batch, actions) of a head's `outputs` (batch, actions, k): its own
+    `q_values`, else the outputs themselves for k = 1 and their mean otherwise."""
+    method = getattr(head, "q_values", None)
+    if method is not None:
+        q_values: torch.Tensor = method(outputs)
+        return q_values
+    return outputs.flatten(1) if outputs.shape[2] == 1 else outputs.mean(dim=2)
+
+
+def standard_head(
+    in_features: int, num_actions: int, config: Config, hidden_width: int | None
+) -> QHead:
+    """The head of `head = "auto"`: dueling, noisy and C51 as the settings say."""
+    if config.distributional == "c51":
+        return CategoricalHead(
+            in_features,
+            hidden_width,
+            num_actions,
+            config.distributional_atoms,
+            config.distributional_v_min,
+            config.distributional_v_max,
+            dueling=config.dueling,
+            noisy=config.noisy,
+            noisy_sigma0=config.noisy_sigma0,
+        )
+    return QHead(
+        in_features,
+        hidden_width,
+        num_actions,
+        dueling=config.dueling,
+        noisy=config.noisy,
+        noisy_sigma0=config.noisy_sigma0,
+    )
+
+
+def build_head(
+    config: Config, in_features: int, num_actions: int, hidden_width: int | None
+) -> nn.Module:
+    """The head `config.head` names, checked on a probe batch of two zero feature vectors:
+    outputs (2, num_actions, k) and Q-values (2, num_actions); a user's head that fails is
+    a one-line ConfigError naming the setting."""
+    if config.head == "auto":
+        return standard_head(in_features, num_actions, config, hidden_width)
+    head = load_part("head", config.head, in_features, num_actions, config, hidden_width)
+    if not isinstance(head, nn.Module):
+        raise ConfigError(f"head = {config.head!r} built {type(head).__name__}, not nn.Module")
+    features = torch.zeros(2, in_features)
+    outputs = _probe(config.head, "", lambda: head(features), in_features)
+    expected = (2, num_actions)
+    if not isinstance(outputs, torch.Tensor) or outputs.ndim != 3 or outputs.shape[:2] != expected:
+        got = tuple(outputs.shape) if isinstance(outputs, torch.Tensor) else type(outputs)
+        raise ConfigError(
+            f"head {config.head!r} gives {got} for features of shape (2, {in_features}); "
+            f"expected (2, {num_actions}, outputs per action)"
+        )
+    q_values = _probe(config.head, "'s q_values", lambda: head_q_values(head, outputs), in_features)
+    if not isinstance(q_values, torch.Tensor) or tuple(q_values.shape) != expected:
+        got = tuple(q_values.shape) if isinstance(q_values, torch.Tensor) else type(q_values)
+        raise ConfigError(f"head {config.head!r}'s q_values gives {got}; expected {expected}")
+    return head
+
+
+def _probe(name: str, what: str, call: Callable[[], Any], in_features: int) -> Any:
+    """`call()` without gradients; the user's code failing is a one-line ConfigError."""
+    try:
+        with torch.no_grad():
+            return call()
+    except Exception as error:  # noqa: BLE001 - the user's code: report, don't crash
+        raise ConfigError(
+            f"head {name!r}{what} fails on features of shape (2, {in_features}): {error!r}"
+        ) from None

@@ -10,8 +10,10 @@ per action. `build_q_network` builds the one a configuration asks for:
 - with every head setting at its default (the Nature DQN) the network of `build_network`:
   `NatureCNN`, `MLP` or the user's `network = module:factory`, built exactly as before the
   heads existed, so that a seed gives the same parameters and older network files load;
-- otherwise a torso (`NatureTorso`, `MLPTorso`, or the user's `torso = module:factory`)
-  under a `heads.QHead`: a `QNetwork`, or with C51 a `DistributionalQNetwork`.
+- otherwise a `QNetwork`: a torso (`NatureTorso`, `MLPTorso`, or the user's
+  `torso = module:factory`) under a head (`heads.build_head`: dueling, noisy and C51 as
+  the settings say, or the user's `head = module:factory`); a `DistributionalQNetwork`
+  with C51's head.
 
 Observations other than a uint8 image or a float vector come packed (`envs/spaces.py`):
 their networks read them through `encoders.ObservationEncoder` (`EncodedNetwork`), as does
@@ -31,11 +33,10 @@ from collections.abc import Sequence
 from typing import NamedTuple
 
 import torch
-import torch.nn.functional as F
 from torch import nn
 
 from dqnlab.algorithm.encoders import SMALL_CNN_HIDDEN_WIDTH, ObservationEncoder, is_small
-from dqnlab.algorithm.heads import QHead
+from dqnlab.algorithm.heads import CategoricalHead, build_head, head_q_values
 from dqnlab.algorithm.image_networks import (
     DATA_EFFICIENT_HIDDEN_WIDTH,
     NATURE_HIDDEN_WIDTH,
@@ -115,60 +116,62 @@ def _hidden_layers(inputs: int, widths: Sequence[int]) -> tuple[list[nn.Module],
 
 
 class QNetwork(nn.Module):
-    """A torso and a head: one Q-value per action, (batch, actions)."""
+    """A torso and a head (`heads.py`): `outputs` gives the head's outputs per action
+    (batch, actions, k), which the loss part reads, and `forward` the Q-values
+    (batch, actions) acting and evaluation use (the head's `q_values`; for C51, the
+    expected returns of its distributions)."""
 
-    def __init__(self, torso: nn.Module, head: QHead) -> None:
+    def __init__(self, torso: nn.Module, head: nn.Module) -> None:
         super().__init__()
         self.torso = torso
         self.head = head
 
+    def outputs(self, observations: torch.Tensor) -> torch.Tensor:
+        outputs: torch.Tensor = self.head(self.torso(observations))
+        return outputs
+
     def forward(self, observations: torch.Tensor) -> torch.Tensor:
-        return self.head(self.torso(observations)).flatten(1)
+        return head_q_values(self.head, self.outputs(observations))
 
 
 class DistributionalQNetwork(QNetwork):
-    """C51 (Bellemare et al. 2017; dqn-family.md 5.1): per action, a categorical
-    distribution of the return on the atoms `support` (atoms,), z_i = v_min + i dz.
+    """A `QNetwork` with C51's head (`heads.CategoricalHead`; Bellemare et al. 2017,
+    dqn-family.md 5.1): per action, a categorical distribution of the return on the atoms
+    `support` (atoms,), z_i = v_min + i dz.
 
     `forward` gives the expected returns sum_i z_i p_i (batch, actions), so that acting,
     evaluation, the held-out statistics and `dqnlab inspect` use it as any Q-network. The
     loss takes `log_probabilities` (batch, actions, atoms), or both from one pass of the
     torso with `forward_with_log_probabilities` (a target's greedy action and its
-    distribution, say). The support is a non-persistent buffer: it follows from the
-    configuration, which every network file stores.
-    """
+    distribution, say)."""
 
-    support: torch.Tensor
+    head: CategoricalHead
 
-    def __init__(self, torso: nn.Module, head: QHead, v_min: float, v_max: float) -> None:
+    def __init__(self, torso: nn.Module, head: CategoricalHead) -> None:
         super().__init__(torso, head)
-        atoms = head.outputs_per_action
-        self.atom_spacing = (v_max - v_min) / (atoms - 1)
-        # z_i = v_min + i dz as defined, in float64 so that the last atom is v_max to float32.
-        support = v_min + torch.arange(atoms, dtype=torch.float64) * self.atom_spacing
-        self.register_buffer("support", support.float(), persistent=False)
+
+    @property
+    def support(self) -> torch.Tensor:
+        return self.head.support
+
+    @property
+    def atom_spacing(self) -> float:
+        return self.head.atom_spacing
 
     def logits(self, observations: torch.Tensor) -> torch.Tensor:
         """Logits of the return distributions, (batch, actions, atoms)."""
-        logits: torch.Tensor = self.head(self.torso(observations))
-        return logits
-
-    def forward(self, observations: torch.Tensor) -> torch.Tensor:
-        probabilities = F.softmax(self.logits(observations), dim=2)
-        return (probabilities * self.support).sum(dim=2)
+        return self.outputs(observations)
 
     def log_probabilities(self, observations: torch.Tensor) -> torch.Tensor:
-        """log p_i per action, (batch, actions, atoms): `log_softmax` over the atoms, finite
-        where log(softmax) would give -inf for a vanishing probability."""
-        return F.log_softmax(self.logits(observations), dim=2)
+        """log p_i per action (`CategoricalHead.log_probabilities`), (batch, actions, atoms)."""
+        return self.head.log_probabilities(self.outputs(observations))
 
     def forward_with_log_probabilities(
         self, observations: torch.Tensor
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """`forward` and `log_probabilities` from one pass of the torso and head."""
-        logits = self.logits(observations)
-        q_values = (F.softmax(logits, dim=2) * self.support).sum(dim=2)
-        return q_values, F.log_softmax(logits, dim=2)
+        logits = self.outputs(observations)
+        return self.head.q_values(logits), self.head.log_probabilities(logits)
 
 
 def build_q_network(
@@ -180,7 +183,8 @@ def build_q_network(
 ) -> nn.Module:
     """The Q-network `config` asks for, for inputs of `input_shape` (history, *observation
     shape) and `num_actions` actions: `build_network`'s network when every head setting
-    (dueling, noisy, distributional, torso) holds its default, else a torso with a head.
+    (dueling, noisy, distributional, torso, head) holds its default, else a torso with a
+    head.
     `layout`: the observation's (`envs/spaces.py`); None: a single frame, an image when
     `is_image`, else a vector."""
     if not _has_torso_and_head(config):
@@ -188,27 +192,20 @@ def build_q_network(
             config.network, input_shape, num_actions, is_image, config.mlp_hidden_sizes, layout
         )
     torso = build_torso(config, input_shape, is_image, layout)
-    c51 = config.distributional == "c51"
-    head = QHead(
-        torso.output_size,
-        torso.head_hidden_width,
-        num_actions,
-        config.distributional_atoms if c51 else 1,
-        dueling=config.dueling,
-        noisy=config.noisy,
-        noisy_sigma0=config.noisy_sigma0,
-    )
-    if c51:
-        return DistributionalQNetwork(
-            torso.module, head, config.distributional_v_min, config.distributional_v_max
-        )
+    head = build_head(config, torso.output_size, num_actions, torso.head_hidden_width)
+    if isinstance(head, CategoricalHead):
+        return DistributionalQNetwork(torso.module, head)
     return QNetwork(torso.module, head)
 
 
 def _has_torso_and_head(config: Config) -> bool:
     """Whether a head setting differs from its default (the Nature DQN's network)."""
     return (
-        config.dueling or config.noisy or config.distributional != "none" or config.torso != "auto"
+        config.dueling
+        or config.noisy
+        or config.distributional != "none"
+        or config.torso != "auto"
+        or config.head != "auto"
     )
 
 

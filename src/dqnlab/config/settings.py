@@ -135,6 +135,13 @@ class Config:
         "hidden layers); module:factory(input_shape) -> module giving (batch, features): the "
         "head of the other settings goes on it",
     )
+    head: str = _setting(
+        "auto",
+        "auto: the head of the other settings (dueling, noisy, distributional); "
+        "module:factory(in_features, num_actions, config, hidden_width) -> module giving "
+        "(batch, actions, outputs per action), with an optional q_values(outputs) (else their "
+        "mean): your own head part (docs: your own variant)",
+    )
     policy: str = _setting(
         "epsilon_greedy",
         "How an action is chosen from the Q-values: epsilon_greedy (ties at random; Lua), or "
@@ -316,6 +323,7 @@ CHOICES: dict[str, tuple[str, ...]] = {
 USER_PARTS: dict[str, tuple[str, ...]] = {
     "loss": ("auto",),
     "torso": ("auto",),
+    "head": ("auto",),
     "policy": ("epsilon_greedy",),
     "augmentation": ("none", "random_shift"),
 }
@@ -451,6 +459,13 @@ def _validate_parts(config: Config) -> None:
             f"torso = {config.torso!r} replaces the network's torso: leave network = 'auto' "
             f"(it is {config.network!r})"
         )
+    if config.head != "auto" and heads:
+        raise ConfigError(
+            f"head = {config.head!r} is your own head, so {', '.join(heads)} cannot be added "
+            "to it: build them into your factory (it gets the settings; heads.QHead and "
+            "heads.CategoricalHead are there to compose)"
+        )
+    heads += ["head"] if config.head != "auto" else []
     if ":" in config.network and heads:
         raise ConfigError(
             f"network = {config.network!r} is a whole Q-network, so {', '.join(heads)} cannot "
