@@ -72,7 +72,57 @@ def settings_page() -> str:
             values = {name: preset.get(f.name, _default(f)) for name, preset in presets.items()}
             doc = _plain(f.metadata["doc"])
             lines.append(_row([anchor, _type_text(hints[f.name]), _preset_values(values), doc]))
-    return "\n".join(lines) + "\n"
+    return "\n".join(lines + part_settings_section()) + "\n"
+
+
+# Where parts that declare settings of their own (`SETTINGS`) are looked for: the shipped
+# part modules and the repository's examples.
+PART_MODULES = (
+    "dqnlab.algorithm.losses", "dqnlab.algorithm.heads", "dqnlab.algorithm.policies",
+    "dqnlab.algorithm.augmentation",
+)  # fmt: skip
+
+
+def part_settings_section() -> list[str]:
+    """The settings each part declares (`dqnlab.parts.PartSetting`), a table per part, set
+    as `parts.SETTING.NAME`: the shipped parts' and the examples' (`examples/*.py`)."""
+    import importlib
+    import sys
+    from pathlib import Path
+
+    from dqnlab.parts import PartSetting
+
+    root = Path(__file__).resolve().parents[1]
+    if str(root) not in sys.path:
+        sys.path.insert(0, str(root))
+    examples = sorted(f"examples.{path.stem}" for path in (root / "examples").glob("[!_]*.py"))
+    lines = [
+        "",
+        "## Parts' own settings",
+        "",
+        "Settings a part declares for itself (`SETTINGS`, a dict of `dqnlab.parts."
+        "PartSetting`; [Your own variant](own-variant.md#a-parts-own-settings)), set as "
+        "`--set parts.PART.NAME=VALUE` or under `[parts.PART]` in a TOML file, where PART is "
+        "the setting naming the part (`loss`, `head`...). Found in the shipped parts' modules "
+        "and the repository's `examples/` when this site is built.",
+    ]
+    header = ["part", "setting", "type", "default", "meaning"]
+    rows = []
+    for name in PART_MODULES + tuple(examples):
+        module = importlib.import_module(name)
+        for attribute, part in sorted(vars(module).items()):
+            declared = getattr(part, "SETTINGS", None)
+            if getattr(part, "__module__", None) != name or not isinstance(declared, dict):
+                continue
+            for key, spec in declared.items():
+                if isinstance(spec, PartSetting):
+                    rows.append(
+                        [f"`{name}:{attribute}`", f"`{key}`", type(spec.default).__name__,
+                         f"`{_value_text(spec.default)}`", _plain(spec.doc)]
+                    )  # fmt: skip
+    if not rows:
+        return lines + ["", "No part declares settings yet."]
+    return lines + ["", _row(header), _row(["---"] * len(header))] + [_row(r) for r in rows]
 
 
 def preset_description(name: str) -> str:

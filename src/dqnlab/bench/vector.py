@@ -35,8 +35,7 @@ from dqnlab.bench.measure import (
     whole_rounds,
 )
 from dqnlab.bench.peers import peer_round
-from dqnlab.config import Config, resolve_config
-from dqnlab.config.settings import CHOICES
+from dqnlab.config import CHOICES, Config, resolve_config
 from dqnlab.errors import ConfigError
 from dqnlab.run.concurrent import training_state
 from dqnlab.run.state import TrainingState

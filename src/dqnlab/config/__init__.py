@@ -4,6 +4,7 @@ Every faithful detail of the Nature DQN is one field of `Config` (`settings.py`)
 `nature` preset (`presets/nature.toml`) sets each to DeepMind's value. Units are part of
 every name: a *frame* is one raw emulator frame, a *step* is one agent decision.
 `files.py` reads and writes settings as text: presets, `--set` overrides, `config.toml`;
+`validation.py` the accepted values and the combinations refused when a `Config` is made;
 `fingerprint.py` says what a checkpoint must match to be resumed, and derives the seeds;
 `protocols.py` holds what a benchmark fixes (Atari 100k).
 """
@@ -30,13 +31,8 @@ from dqnlab.config.fingerprint import (
     differing_settings,
 )
 from dqnlab.config.protocols import ATARI100K_PROTOCOL, atari100k_departures
-from dqnlab.config.settings import (
-    CHOICES,
-    FIELD_NAMES,
-    USER_PARTS,
-    WANDB_PROJECT_FORBIDDEN,
-    Config,
-)
+from dqnlab.config.settings import FIELD_NAMES, Config
+from dqnlab.config.validation import CHOICES, USER_PARTS, WANDB_PROJECT_FORBIDDEN
 
 __all__ = [
     "ADDED_WITH_DEFAULTS",

@@ -19,7 +19,9 @@ else:  # pragma: no cover
     import tomli as tomllib
 
 from dqnlab.config.settings import FIELD_NAMES, Config
+from dqnlab.config.validation import USER_PARTS
 from dqnlab.errors import ConfigError
+from dqnlab.parts import load_object, part_settings
 
 
 def preset_names() -> list[str]:
@@ -49,6 +51,12 @@ def load_preset(name_or_path: str) -> dict[str, Any]:
 
 def _check_names(values: dict[str, Any], where: str) -> None:
     for name in values:
+        if name.startswith("parts."):
+            if len(name.split(".")) != 3 or not all(name.split(".")):
+                raise ConfigError(
+                    f"{name!r} in {where}: a part's setting is parts.PART.NAME (parts.loss.tau)"
+                )
+            continue
         if name not in FIELD_NAMES:
             close = difflib.get_close_matches(name, FIELD_NAMES, n=3)
             hint = f"; did you mean {', '.join(close)}?" if close else ""
@@ -128,12 +136,67 @@ def _type_name(expected: Any) -> str:
 
 
 def resolve_config(preset: str, overrides: dict[str, Any] | None = None, **explicit: Any) -> Config:
-    """The preset's values, then `overrides` (from --set), then explicit non-None arguments."""
+    """The preset's values, then `overrides` (from --set), then explicit non-None arguments;
+    a dotted `parts.PART.NAME` key sets one of a part's own settings, and the settings a
+    user's part declares are filled in with their defaults (`with_part_settings`)."""
     values = load_preset(preset)
     values.update(overrides or {})
     values.update({k: v for k, v in explicit.items() if v is not None})
     _check_names(values, "the configuration")
-    return Config(**{name: _coerce(name, value) for name, value in values.items()})
+    values = _nest_part_settings(values)
+    config = Config(**{name: _coerce(name, value) for name, value in values.items()})
+    return with_part_settings(config)
+
+
+def _nest_part_settings(values: dict[str, Any]) -> dict[str, Any]:
+    """`parts.PART.NAME = value` keys moved into the `parts` table, over what it has."""
+    dotted = {key: value for key, value in values.items() if key.startswith("parts.")}
+    if not dotted:
+        return values
+    nested = {key: value for key, value in values.items() if key not in dotted}
+    parts = nested.get("parts", {})
+    if not isinstance(parts, dict):
+        raise ConfigError(f"parts = {parts!r} must be a table (a dict) of tables")
+    parts = {setting: dict(table) for setting, table in parts.items()}
+    for key, value in dotted.items():
+        _, setting, name = key.split(".")
+        table = parts.setdefault(setting, {})
+        if not isinstance(table, dict):
+            raise ConfigError(f"parts.{setting} = {table!r} must be a table of settings")
+        table[name] = value
+    nested["parts"] = parts
+    return nested
+
+
+def with_part_settings(config: Config) -> Config:
+    """`config` with `parts` holding every setting of each user's part (`module:Name`) that
+    declares some: the given values checked against the declaration, the defaults for the
+    rest (`dqnlab.parts.part_settings`). A shipped part declares none, so a setting given
+    for one is refused. A part that cannot be imported here is left to the run that builds
+    it (which says so in one line), unless settings were given for it."""
+    parts = {setting: dict(table) for setting, table in config.parts.items()}
+    for setting in USER_PARTS:
+        path = getattr(config, setting)
+        given = parts.get(setting, {})
+        if ":" not in path:
+            if given:
+                raise ConfigError(
+                    f"parts.{setting}: {setting} = {path!r} is a shipped part with no settings "
+                    f"of its own (given: {', '.join(given)})"
+                )
+            continue
+        try:
+            part = load_object(setting, path)
+        except ConfigError:
+            if given:
+                raise
+            continue
+        filled = part_settings(setting, part, config)
+        if filled:
+            parts[setting] = filled
+    if parts == config.parts:
+        return config
+    return dataclasses.replace(config, parts=parts)
 
 
 def config_from_dict(values: dict[str, Any]) -> Config:

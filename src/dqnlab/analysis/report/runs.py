@@ -7,7 +7,7 @@ Reading only: nothing here writes a file or plays a game.
 from __future__ import annotations
 
 import re
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -156,14 +156,34 @@ def label_keys(runs: Sequence[RunResults]) -> list[str]:
     are named alike across games and the summary across games can match them."""
     by_env: dict[str, list[dict[str, Any]]] = {}
     for run in runs:
-        by_env.setdefault(run.config.env, []).append(run.config.to_dict())
+        by_env.setdefault(run.config.env, []).append(_flat_settings(run.config))
+    names = _flat_names(values for settings in by_env.values() for values in settings)
     differing = set()
     for settings in by_env.values():
-        for name in FIELD_NAMES:
+        for name in names:
             grouped = name != "env" and name not in NOT_GROUPED
-            if grouped and len({repr(values[name]) for values in settings}) > 1:
+            if grouped and len({repr(values.get(name)) for values in settings}) > 1:
                 differing.add(name)
-    return [name for name in FIELD_NAMES if name in differing]
+    return [name for name in names if name in differing]
+
+
+def _flat_settings(config: Config) -> dict[str, Any]:
+    """`config.to_dict()` with the parts' own settings as `parts.PART.NAME` keys, so that a
+    label names the one that differs (`parts.loss.tau=0.01`), not the whole table."""
+    values = config.to_dict()
+    for setting, table in values.pop("parts").items():
+        for name, value in table.items():
+            values[f"parts.{setting}.{name}"] = value
+    return values
+
+
+def _flat_names(settings: Iterable[dict[str, Any]]) -> list[str]:
+    """Every setting's name in `Config` order, the parts' own settings where `parts` is."""
+    dotted = sorted({name for values in settings for name in values if name.startswith("parts.")})
+    names: list[str] = []
+    for name in FIELD_NAMES:
+        names += dotted if name == "parts" else [name]
+    return names
 
 
 def matching_preset(config: Config) -> str | None:
@@ -192,8 +212,8 @@ def group_runs(runs: Sequence[RunResults]) -> list[Group]:
             presets = {}
     groups: dict[tuple[str, str], Group] = {}
     for run in runs:
-        values = run.config.to_dict()
-        settings = {key: values[key] for key in keys}
+        values = _flat_settings(run.config)
+        settings = {key: values.get(key) for key in keys}
         label = ", ".join(f"{k}={setting_text(v)}" for k, v in settings.items()) or ALL_EQUAL
         if presets:
             label = f"preset={presets[run.run_dir]}"
