@@ -7,6 +7,11 @@ user sets them per part setting: `[parts.loss]` in a TOML file, `--set parts.los
 on the command line; `resolve_config` fills in the declared defaults, so the run's
 `config.toml` holds every value the part ran with, and the part reads
 `config.parts["loss"]["tau"]`.
+
+A part that draws random numbers subclasses `RandomPart`: the agent gives it a generator
+of its own (`generator`, a `torch.Generator` on the training device) and saves its state in
+every checkpoint, so that a resumed run draws what it would have drawn
+(`algorithm/part_generators.py`).
 """
 
 from __future__ import annotations
@@ -28,6 +33,18 @@ class PartSetting:
 
     default: Scalar
     doc: str
+
+
+class RandomPart:
+    """Mixin of a part that draws random numbers (a loss part, or any module of the
+    network: a head, a torso). The agent sets `generator` before the part is first used: a
+    `torch.Generator` on the training device, the part's own, seeded from the run's seed and
+    the part's name, saved in checkpoints. Draw only from it (`torch.rand(...,
+    generator=self.generator, device=...)`): numbers from torch's global generator are not
+    saved, and a resumed run would draw others. It stays None where no agent owns the part
+    (a network built on its own), and torch's functions then draw from the global one."""
+
+    generator: Any = None
 
 
 def load_part(setting: str, path: str, *args: Any) -> Any:

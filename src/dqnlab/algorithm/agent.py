@@ -25,6 +25,12 @@ from dqnlab.algorithm.heads import has_noise, sample_noise
 from dqnlab.algorithm.losses import Transitions, build_loss
 from dqnlab.algorithm.networks import build_q_network, recorded_network_name
 from dqnlab.algorithm.optim import build_optimizer
+from dqnlab.algorithm.part_generators import (
+    attach_generators,
+    generator_states,
+    random_parts,
+    restore_generators,
+)
 from dqnlab.algorithm.policies import build_policy
 from dqnlab.algorithm.replay import Batch
 from dqnlab.algorithm.update_graph import CapturedUpdate, HostToDevice
@@ -118,6 +124,12 @@ class Agent:
         self.augmentation = build_augmentation(config, is_image)
         self.augmentation_generator = torch.Generator(device=device)
         self.augmentation_generator.manual_seed(derive_seeds(seed, 1)[0])
+        # Parts that draw random numbers (`dqnlab.parts.RandomPart`): a generator each.
+        self.part_generators = attach_generators(
+            random_parts({"online": self.online, "target": self.target, "loss": self.loss}),
+            device,
+            seed,
+        )
         self._optimizer_step: Callable[[], object] = self.optimizer.step
         if compile_update:
             self._loss_and_backward = torch.compile(self._loss_and_backward)  # type: ignore[method-assign]
@@ -205,7 +217,12 @@ class Agent:
         the loss part gives (for prioritized replay), neither synchronised (with
         update_graph, the graph's own tensors: read them before the next update)."""
         device = self.device
+        # Both networks in train mode for every update, whatever ran before (acting and the
+        # held-out statistics use eval mode): a part whose forward depends on the mode
+        # (noisy layers, a user's dropout or random draws) then computes the same after a
+        # resume as in a run left alone.
         self.online.train()
+        self.target.train()
         if batch.window is not None:  # the shared frames cross to the device once
             frames, next_frames = _on_device(batch.window, device), None
         else:
@@ -218,7 +235,6 @@ class Agent:
         assert actions is not None and rewards is not None and terminals is not None
         if self.noisy:  # fresh noise for each network (Fortunato et al. 2018, Algorithm 1)
             # Drawn in place into the layers' buffers, outside a graph: each update's own.
-            self.target.train()
             sample_noise(self.online, self.noise_generator)
             sample_noise(self.target, self.noise_generator)
         step = self._update_step if self._graph is None else self._graph
@@ -296,6 +312,7 @@ class Agent:
             "rng": self.rng.bit_generator.state,
             "noise_rng": self.noise_generator.get_state(),
             "augmentation_rng": self.augmentation_generator.get_state(),
+            "part_rngs": generator_states(self.part_generators),
             "updates": self.updates,
         }
 
@@ -310,6 +327,7 @@ class Agent:
             self.noise_generator.set_state(state["noise_rng"].cpu())
         if "augmentation_rng" in state:  # nor from before the augmentation part
             self.augmentation_generator.set_state(state["augmentation_rng"].cpu())
+        restore_generators(self.part_generators, state.get("part_rngs", {}))
         self.updates = int(state["updates"])
 
 
