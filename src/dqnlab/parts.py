@@ -106,6 +106,23 @@ def fill_settings(
     return filled
 
 
+# The head settings a head factory may honour, which it lists in its `HEAD_OPTIONS`.
+HEAD_OPTIONS = ("dueling", "noisy")
+
+
+def check_head_options(config: Any, factory: Any) -> None:
+    """Refuse `dueling` or `noisy` on with a user's head (`head = module:factory`) whose
+    factory does not list them in its `HEAD_OPTIONS`: it would build a head without them."""
+    honoured = getattr(factory, "HEAD_OPTIONS", ())
+    missing = [name for name in HEAD_OPTIONS if getattr(config, name) and name not in honoured]
+    if missing:
+        raise ConfigError(
+            f"head = {config.head!r} is your own head, so {', '.join(missing)} cannot be "
+            "added to it: build them into your factory (it gets the settings; heads.QHead is "
+            "there to compose) and list them in its HEAD_OPTIONS"
+        )
+
+
 def part_settings(setting: str, part: Any, config: Any) -> dict[str, Scalar]:
     """The settings of `part` (a class or factory named by the setting `setting`) in a run of
     `config`: what `config.parts[setting]` gives, the declared defaults for the rest. A part

@@ -165,7 +165,8 @@ def test_a_head_that_does_not_fit_is_one_line_naming_the_setting(settings, messa
     ("settings", "message"),
     [
         ({"dueling": True}, "your own head, so dueling cannot be added"),
-        ({"distributional": "c51", "noisy": True}, "so noisy, distributional cannot"),
+        ({"distributional": "c51"}, "so distributional cannot be added"),
+        ({"noisy": True}, "so noisy cannot be added .* list them in its HEAD_OPTIONS"),
         ({"network": f"{HERE}:small_torso"}, "whole Q-network, so head cannot"),
         ({"head": "just_a_name"}, "head = 'just_a_name' is not one of: auto, or module:Name"),
     ],

@@ -12,8 +12,8 @@ def test_lists(tmp_path: Path) -> None:
     assert games.returncode == 0 and "space_invaders" in games.stdout.split()
     presets = dqnlab("presets")
     assert presets.stdout.split() == [
-        "c51", "classic", "der", "double", "drq_epsilon", "dueling", "machado", "nature",
-        "prioritized", "rainbow", "seed-paper",
+        "c51", "classic", "der", "double", "drq_epsilon", "dueling", "iqn", "machado",
+        "nature", "prioritized", "qrdqn", "rainbow", "seed-paper",
     ]  # fmt: skip
     nature = dqnlab("presets", "nature")
     assert "learning_rate = 0.00025" in nature.stdout

@@ -30,7 +30,7 @@ from torch import nn
 
 from dqnlab.config import Config
 from dqnlab.errors import ConfigError
-from dqnlab.parts import load_part
+from dqnlab.parts import check_head_options, load_object, load_part
 
 # Wang et al. 2016 rescale the combined gradient entering the last convolutional layer by
 # 1/sqrt(2), as both streams send one into the torso (dqn-family.md 2.1, secondary copies).
@@ -305,6 +305,7 @@ def build_head(
     a one-line ConfigError naming the setting."""
     if config.head == "auto":
         return standard_head(in_features, num_actions, config, hidden_width)
+    check_head_options(config, load_object("head", config.head))
     head = load_part("head", config.head, in_features, num_actions, config, hidden_width)
     if not isinstance(head, nn.Module):
         raise ConfigError(f"head = {config.head!r} built {type(head).__name__}, not nn.Module")

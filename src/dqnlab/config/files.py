@@ -21,7 +21,7 @@ else:  # pragma: no cover
 from dqnlab.config.settings import FIELD_NAMES, Config
 from dqnlab.config.validation import USER_PARTS
 from dqnlab.errors import ConfigError
-from dqnlab.parts import load_object, part_settings
+from dqnlab.parts import check_head_options, load_object, part_settings
 
 
 def preset_names() -> list[str]:
@@ -191,6 +191,8 @@ def with_part_settings(config: Config) -> Config:
             if given:
                 raise
             continue
+        if setting == "head":
+            check_head_options(config, part)
         filled = part_settings(setting, part, config)
         if filled:
             parts[setting] = filled

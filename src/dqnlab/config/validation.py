@@ -198,11 +198,10 @@ def _validate_parts(config: Config) -> None:
             f"torso = {config.torso!r} replaces the network's torso: leave network = 'auto' "
             f"(it is {config.network!r})"
         )
-    if config.head != "auto" and heads:
+    if config.head != "auto" and distributional:
         raise ConfigError(
-            f"head = {config.head!r} is your own head, so {', '.join(heads)} cannot be added "
-            "to it: build them into your factory (it gets the settings; heads.QHead and "
-            "heads.CategoricalHead are there to compose)"
+            f"head = {config.head!r} is your own head, so distributional cannot be added to "
+            "it: build it into your factory (heads.CategoricalHead is there to compose)"
         )
     heads += ["head"] if config.head != "auto" else []
     if ":" in config.network and heads:

@@ -61,8 +61,24 @@ AGENTS = {
             "rainbow", "Dopamine Rainbow (compact: C51, 3-step, prioritized)", "teal", "-.",
             VARIANT_FILE,
         ),
+        ReferenceAgent(
+            "quantile", "Dopamine QR-DQN (3-step, prioritized)", "indigo", "-.", VARIANT_FILE
+        ),
+        ReferenceAgent("iqn", "Dopamine IQN (3-step)", "darkslategray", ":", VARIANT_FILE),
     )
 }  # fmt: skip
+# The shipped quantile parts (`algorithm/quantile.py`: head, loss) and Dopamine's agent of
+# the same update, with the parts of Rainbow's regime its curves were trained with.
+QUANTILE_AGENTS = {
+    ("dqnlab.algorithm.quantile:quantile_head", "dqnlab.algorithm.quantile:QuantileLoss"): (
+        "quantile",
+        ("3-step returns", "prioritized replay"),
+    ),
+    (
+        "dqnlab.algorithm.quantile:implicit_quantile_head",
+        "dqnlab.algorithm.quantile:ImplicitQuantileLoss",
+    ): ("iqn", ("3-step returns",)),
+}
 
 
 # Which agent matches a run -------------------------------------------------------------
@@ -94,8 +110,13 @@ def reference_agent(config: Config) -> ReferenceMatch:
     - none for anything else: a part alone (double, dueling, noisy, prioritized, n-step),
       C51 with some of Rainbow's parts but not both of n-step and prioritized, a user's
       loss or torso. Dopamine publishes no curve for them, and setting them beside another
-      agent's would credit or blame the part for what another update does. Its IQN and
-      QR-DQN curves have no dqnlab variant to match."""
+      agent's would credit or blame the part for what another update does.
+    - `quantile`, `iqn`: the shipped QR-DQN or IQN head and loss (`qrdqn`, `iqn` presets),
+      every other part the Nature DQN's or those of Dopamine's regime (3-step returns, and
+      for QR-DQN prioritized replay), with a caveat naming what differs."""
+    quantile = QUANTILE_AGENTS.get((config.head, config.loss))
+    if quantile is not None:
+        return _quantile_match(config, *quantile)
     for setting, defaults in USER_PARTS.items():
         value = getattr(config, setting)
         if value not in defaults:
@@ -122,6 +143,30 @@ def reference_agent(config: Config) -> ReferenceMatch:
             )
         return ReferenceMatch("rainbow", caveat=caveat)
     return ReferenceMatch(None, f"Dopamine publishes no curve for DQN + {' + '.join(parts)}")
+
+
+def _quantile_match(config: Config, agent: str, dopamine: tuple[str, ...]) -> ReferenceMatch:
+    """Dopamine's QR-DQN or IQN for a run of the shipped quantile parts; none when the run
+    adds a part Dopamine's agent lacks (double, dueling, a user's torso...). A run without
+    all of Dopamine's regime (the `qrdqn` and `iqn` presets: one-step, uniform) is compared
+    with a caveat naming the difference."""
+    for setting in ("torso", "policy", "augmentation"):
+        value = getattr(config, setting)
+        if value not in USER_PARTS[setting]:
+            why = f"Dopamine publishes no curve for your own {setting} ({value})"
+            return ReferenceMatch(None, why)
+    run = family_parts(config)
+    extra = [part for part in run if part not in dopamine and not part.endswith("-step returns")]
+    name = AGENTS[agent].name
+    if extra:
+        short = name.split(" (")[0].removeprefix("Dopamine ")
+        why = f"Dopamine publishes no curve for {short} + {_and(extra)}"
+        return ReferenceMatch(None, why)
+    caveat = None
+    if tuple(run) != dopamine:
+        has = _and(run) if run else "one-step returns and uniform replay"
+        caveat = f"compared with {name}; this run has {has}"
+    return ReferenceMatch(agent, caveat=caveat)
 
 
 def family_parts(config: Config) -> list[str]:
