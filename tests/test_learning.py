@@ -69,6 +69,15 @@ VARIANTS = {
         "epsilon_end": 0.0, "max_gradient_norm": 10.0,
     },
     "munchausen": {"loss": "examples.munchausen:MunchausenLoss"},
+    # The shipped quantile parts at their own defaults (200 quantiles; N = N' = 64, K = 32).
+    "qrdqn": {
+        "head": "dqnlab.algorithm.quantile:quantile_head",
+        "loss": "dqnlab.algorithm.quantile:QuantileLoss",
+    },
+    "iqn": {
+        "head": "dqnlab.algorithm.quantile:implicit_quantile_head",
+        "loss": "dqnlab.algorithm.quantile:ImplicitQuantileLoss",
+    },
 }  # fmt: skip
 
 
