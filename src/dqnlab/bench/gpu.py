@@ -224,8 +224,9 @@ def _training_figures(state: TrainingState, steps: int) -> dict[str, Any]:
     config = state.config
     state.steps = config.replay_start_steps + config.epsilon_decay_steps  # epsilon 0.1
     steps = whole_rounds(steps, len(state.envs))
-    for _ in range(min(100, steps)):
-        state.advance()
+    warmed = state.steps + min(100, steps)  # agent steps, of all the environments together
+    while state.steps < warmed:
+        state.advance(warmed - state.steps)
     frames_per_second, split = measure_training(state, steps)
     updates = state.agent.updates
     state.close()
