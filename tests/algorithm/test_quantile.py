@@ -250,9 +250,15 @@ def test_the_presets_values(preset, values) -> None:
     assert differing <= set(values) | {"distributional"}
 
 
-@pytest.mark.parametrize("settings", [QR, IQN], ids=["qrdqn", "iqn"])
-def test_a_short_training_through_the_parts(settings) -> None:
-    config = _classic(settings, replay_start_steps=100, total_steps=200)
+SMALL = {  # fewer quantiles and fractions than the defaults: what is tested is the wiring
+    "qrdqn": {**QR, "parts": {"head": {"quantiles": 8}}},
+    "iqn": {**IQN, "parts": {"loss": {"online_samples": 8, "target_samples": 8}}},
+}
+
+
+@pytest.mark.parametrize("variant", list(SMALL))
+def test_a_short_training_through_the_parts(variant) -> None:
+    config = _classic(SMALL[variant], replay_start_steps=100, total_steps=200)
     state = TrainingState(config, torch.device("cpu"))
     before = [p.detach().clone() for p in state.agent.online.parameters()]
     for _ in range(200):
