@@ -289,6 +289,7 @@ def test_the_device_replay_and_the_graph_update_never_wait_for_the_device() -> N
         for _ in range(20):
             loss, _ = state.agent.update(state.replay.sample())
             state.loss_sum += loss
+            state.losses += 1
     finally:
         torch.cuda.set_sync_debug_mode("default")
     assert state.mean_loss() is not None

@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import pytest
 import torch
 from typer.testing import CliRunner
 
@@ -37,7 +38,9 @@ def test_the_script_end_to_end_on_cpu_quick(tmp_path: Path) -> None:
 def test_the_command_line_writes_the_same_file(tmp_path: Path, monkeypatch) -> None:  # noqa: ANN001
     seen = {}
     monkeypatch.setattr(
-        gpu, "run_gpu_benchmark", lambda device, quick, env, echo: seen.update(locals()) or {}
+        gpu,
+        "run_gpu_benchmark",
+        lambda device, quick, env, echo, budget_seconds, only: seen.update(locals()) or {},
     )
     path = tmp_path / "out.json"
     result = CliRunner().invoke(
@@ -46,6 +49,14 @@ def test_the_command_line_writes_the_same_file(tmp_path: Path, monkeypatch) -> N
     assert result.exit_code == 0, result.output
     assert json.loads(path.read_text()) == {}
     assert seen["device"] == torch.device("cpu") and seen["quick"] and seen["env"] == "pong"
+    assert seen["budget_seconds"] == gpu.BUDGET_SECONDS
+
+
+def test_the_budget_skips_the_sections_not_yet_begun(tmp_path: Path) -> None:
+    figures = gpu.run_gpu_benchmark(torch.device("cpu"), quick=True, echo=lambda _: None,
+                                    budget_seconds=0.0)  # fmt: skip
+    assert figures["cpu_matches_device"] == "skipped: the time budget was spent"
+    assert figures["exact_loop_graph_off"] == "skipped: the time budget was spent"
 
 
 def test_the_agreement_check_itself_on_cpu() -> None:
@@ -54,3 +65,12 @@ def test_the_agreement_check_itself_on_cpu() -> None:
     agreement = gpu.cpu_matches_device(torch.device("cpu"), "pong", 0)
     assert agreement["bit_identical"] and agreement["within_tolerance"]
     assert agreement["largest_weight_change"] > 0
+
+
+def test_only_the_named_sections_run_and_an_unknown_name_is_refused() -> None:
+    figures = gpu.run_gpu_benchmark(torch.device("cpu"), quick=True, echo=lambda _: None,
+                                    only=frozenset({"cpu_matches_device"}))  # fmt: skip
+    assert figures["cpu_matches_device"] == gpu.NO_CUDA
+    assert "exact_loop_graph_off" not in figures
+    with pytest.raises(ValueError, match="unknown bench-gpu section nope; the sections: cpu_m"):
+        gpu.run_gpu_benchmark(torch.device("cpu"), quick=True, only=frozenset({"nope"}))

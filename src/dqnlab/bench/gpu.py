@@ -67,8 +67,12 @@ def run_gpu_benchmark(
     env: str = "breakout",
     seed: int = 0,
     echo: Callable[[str], object] = print,
+    budget_seconds: float = BUDGET_SECONDS,
+    only: frozenset[str] | None = None,
 ) -> dict[str, Any]:
-    """All the figures; a section that fails records its error rather than ending the run."""
+    """All the figures (or the sections named in `only`); a section that fails records its
+    error rather than ending the run, and a section not begun once `budget_seconds` have
+    passed is skipped."""
     sizes = QUICK if quick else FULL
     started = time.perf_counter()
     cuda = device.type == "cuda"
@@ -98,8 +102,14 @@ def run_gpu_benchmark(
         f"num_envs_{ACTOR_LEARNER_ENVS}_actor_learner",
         partial(vector_loop, device, env, seed, ACTOR_LEARNER_ENVS, sizes, "off", "actor-learner"),
     ))  # fmt: skip
+    unknown = sorted((only or frozenset()) - {name for name, _ in sections})
+    if unknown:
+        known = ", ".join(name for name, _ in sections)
+        raise ValueError(f"unknown bench-gpu section {', '.join(unknown)}; the sections: {known}")
     for name, measure in sections:
-        if time.perf_counter() - started > BUDGET_SECONDS:
+        if only is not None and name not in only:
+            continue
+        if time.perf_counter() - started > budget_seconds:
             figures[name] = "skipped: the time budget was spent"
             continue
         echo(f"dqnlab bench-gpu: {name} ...")
@@ -224,12 +234,16 @@ def _training_figures(state: TrainingState, steps: int) -> dict[str, Any]:
     config = state.config
     state.steps = config.replay_start_steps + config.epsilon_decay_steps  # epsilon 0.1
     steps = whole_rounds(steps, len(state.envs))
-    warmed = state.steps + min(100, steps)  # agent steps, of all the environments together
-    while state.steps < warmed:
-        state.advance(warmed - state.steps)
-    frames_per_second, split = measure_training(state, steps)
-    updates = state.agent.updates
-    state.close()
+    # Agent steps, of all the environments together, in whole rounds: an actor thread acts
+    # a round ahead, and the learner may only ask for whole rounds of it.
+    warmed = state.steps + whole_rounds(min(100, steps), len(state.envs))
+    try:  # closed on failure too: an actor thread left running aborts the process at exit
+        while state.steps < warmed:
+            state.advance(warmed - state.steps)
+        frames_per_second, split = measure_training(state, steps)
+        updates = state.agent.updates
+    finally:
+        state.close()
     return {
         "frames_per_second": round(frames_per_second, 1),
         "steps": steps,
@@ -307,19 +321,39 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--quick", action="store_true", help="a tiny budget (a test's)")
     parser.add_argument("--env", default="breakout", help="Atari game (breakout or pong)")
     parser.add_argument("--json", type=Path, default=Path("bench-gpu.json"), help="output file")
+    parser.add_argument(
+        "--budget", type=float, default=BUDGET_SECONDS,
+        help="seconds after which sections not yet begun are skipped",
+    )  # fmt: skip
+    parser.add_argument("--only", default="", help="comma-separated sections to run (all)")
     arguments = parser.parse_args(argv)
-    figures = write_gpu_benchmark(arguments.json, arguments.device, arguments.quick, arguments.env)
+    only = frozenset(filter(None, arguments.only.split(","))) or None
+    figures = write_gpu_benchmark(
+        arguments.json, arguments.device, arguments.quick, arguments.env, arguments.budget, only
+    )
     print(json.dumps(figures, indent=2))
     return 0
 
 
-def write_gpu_benchmark(path: Path, device: str, quick: bool, env: str) -> dict[str, Any]:
+def write_gpu_benchmark(
+    path: Path,
+    device: str,
+    quick: bool,
+    env: str,
+    budget_seconds: float = BUDGET_SECONDS,
+    only: frozenset[str] | None = None,
+) -> dict[str, Any]:
     """Run `run_gpu_benchmark` on `device` ("auto": CUDA where there is one) and write its
     figures to `path` as JSON."""
     if device == "auto":
         device = "cuda" if torch.cuda.is_available() else "cpu"
     figures = run_gpu_benchmark(
-        torch.device(device), quick=quick, env=env, echo=lambda line: print(line, file=sys.stderr)
+        torch.device(device),
+        quick=quick,
+        env=env,
+        echo=lambda line: print(line, file=sys.stderr),
+        budget_seconds=budget_seconds,
+        only=only,
     )
     path.write_text(json.dumps(figures, indent=2) + "\n")
     return figures

@@ -242,6 +242,13 @@ class Config:
         "graph and replayed, one launch per update instead of dozens (a CUDA device only; "
         "not with compile_update)",
     )
+    deterministic: bool = _setting(
+        True,
+        "On a CUDA device, PyTorch's deterministic algorithms (cuDNN, cuBLAS): a run repeats "
+        "bit for bit and a resumed run continues exactly as an uninterrupted one; false is "
+        "faster and neither holds (a resume then says so). No effect on the CPU, whose "
+        "operations are deterministic already",
+    )
     replay_storage: str = _setting(
         "auto",
         "host: minibatches gathered in host memory and copied to the device; device: the "

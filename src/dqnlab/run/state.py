@@ -35,6 +35,7 @@ from dqnlab.algorithm.replay import FrameHistory, ReplayMemory, check_memory
 from dqnlab.config import Config, derive_seeds
 from dqnlab.envs import Environment, make_env
 from dqnlab.errors import DqnlabError, ResourceError
+from dqnlab.run.determinism import use_deterministic_algorithms
 from dqnlab.run.play import EvaluationResult, play
 
 TIMED_PARTS = ("env", "act", "store", "sample", "update")
@@ -72,6 +73,7 @@ class TrainingState:
     ) -> None:
         """`replay` replaces the configured replay memory (a benchmark brings a filled one)."""
         self.config = config
+        use_deterministic_algorithms(config, device)
         seeds = derive_seeds(config.seed, 7)
         random.seed(seeds[0])
         torch.manual_seed(seeds[1])

@@ -18,6 +18,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import signal
+import sys
 import threading
 import time
 from collections import deque
@@ -37,6 +38,7 @@ from dqnlab.run import rundir
 from dqnlab.run.background_eval import BackgroundEvaluations, NetworkState
 from dqnlab.run.checkpoints import CheckpointStore
 from dqnlab.run.concurrent import training_state
+from dqnlab.run.determinism import resume_warning
 from dqnlab.run.lease import RunLease
 from dqnlab.run.logs import RunLogger
 from dqnlab.run.play import EvaluationResult
@@ -155,7 +157,10 @@ class TrainingLoop:
         self.progress = RunProgress()
         pending: list[dict[str, Any]] = []  # evaluations a checkpoint left in flight
         if resume:
-            pending = self._restore(device)
+            pending = self._restore()
+            warning = resume_warning(config, device)
+            if warning:
+                tqdm.write(warning, file=sys.stderr)
         else:
             rundir.write_run_config(run_dir, config)
         check_disk(run_dir, self.state.replay)
@@ -366,11 +371,14 @@ class TrainingLoop:
         self.saved_mark = replay.mark()
         self.saved_time = time.monotonic()
 
-    def _restore(self, device: torch.device) -> list[dict[str, Any]]:
+    def _restore(self) -> list[dict[str, Any]]:
         """Carry on from the newest complete checkpoint, if there is one; returns the
         background evaluations it left pending."""
         replay = self.state.replay
-        loaded = self.store.latest(self.fingerprint, into=replay.arrays, map_location=device)
+        # Loaded into host memory whatever the device: the state's load_state_dict copies
+        # each tensor where it belongs (weights and optimizer state onto the device; random
+        # states, frame histories and screens stay on the host, where NumPy reads them).
+        loaded = self.store.latest(self.fingerprint, into=replay.arrays, map_location="cpu")
         replay.upload()
         if loaded is not None:
             self.state.load_state_dict(loaded.state["learner"])
