@@ -62,7 +62,17 @@ def assert_same_run(reference: Path, resumed: Path) -> None:
     assert tensorboard_steps(resumed) == tensorboard_steps(reference)
 
 
-@pytest.mark.parametrize("name", list(VARIANTS))
+# The fast suite keeps CartPole and the nested Dict space; Rainbow's parts (resumed with one
+# environment in test_resume.py) and Pong's emulators (likewise) with three environments run
+# under the slow marker, for CI's time.
+SLOW_VARIANTS = ("rainbow-cartpole", "pong")
+
+
+@pytest.mark.parametrize(
+    "name",
+    [pytest.param(name, marks=pytest.mark.slow) if name in SLOW_VARIANTS else name
+     for name in VARIANTS],
+)  # fmt: skip
 def test_three_environments_killed_and_resumed_are_bit_identical(tmp_path: Path, name) -> None:
     args = VARIANTS[name]
     reference, resumed = tmp_path / "reference", tmp_path / "resumed"
