@@ -124,7 +124,7 @@ class QuantileLoss(Loss):
 
     def __init__(self, config: Config) -> None:
         super().__init__(config)
-        self.kappa = float(part_settings("loss", QuantileLoss, config)["kappa"])
+        self.kappa = float(part_settings("loss", type(self), config)["kappa"])
         if self.kappa <= 0:
             raise ConfigError(f"parts.loss.kappa = {self.kappa} must be positive")
 
@@ -234,7 +234,7 @@ class ImplicitQuantileLoss(Loss, RandomPart):
 
     def __init__(self, config: Config) -> None:
         super().__init__(config)
-        settings = part_settings("loss", ImplicitQuantileLoss, config)
+        settings = part_settings("loss", type(self), config)
         self.kappa = float(settings["kappa"])
         self.online_samples = int(settings["online_samples"])
         self.target_samples = int(settings["target_samples"])
@@ -247,7 +247,7 @@ class ImplicitQuantileLoss(Loss, RandomPart):
     def __call__(self, online: nn.Module, target: nn.Module, batch: Transitions) -> LossOutput:
         head = _head_of(online, ImplicitQuantileHead, "implicit_quantile_head")
         features = _torso(online)(batch.observations)
-        fractions = self._fractions(features.shape[0], self.online_samples, features.device)
+        fractions = self.sample_fractions(features.shape[0], self.online_samples, features.device)
         values = head.quantile_values(features, fractions)  # (batch, actions, N)
         estimates = _gather_action(values, batch.actions)
         with torch.no_grad():
@@ -264,12 +264,13 @@ class ImplicitQuantileLoss(Loss, RandomPart):
         features = _torso(target)(batch.next_observations)  # once, for a* and the values
         next_q = head(features).mean(dim=2)  # K fractions from the target head's generator
         actions = self.next_actions(online, next_q, batch)
-        fractions = self._fractions(features.shape[0], self.target_samples, features.device)
+        fractions = self.sample_fractions(features.shape[0], self.target_samples, features.device)
         chosen = _gather_action(head.quantile_values(features, fractions), actions)
         bootstrap = (batch.discounts * (1.0 - batch.terminals)).unsqueeze(1)
         return batch.rewards.unsqueeze(1) + bootstrap * chosen
 
-    def _fractions(self, batch: int, samples: int, device: torch.device) -> torch.Tensor:
+    def sample_fractions(self, batch: int, samples: int, device: torch.device) -> torch.Tensor:
+        """Fractions uniform in [0, 1), (batch, samples), from the part's generator."""
         return torch.rand((batch, samples), generator=self.generator, device=device)
 
 
