@@ -16,7 +16,7 @@ def test_every_variants_figures_and_their_ratios(monkeypatch) -> None:
     # A small tree for the full-replay figure: its size is a parameter, not what is tested.
     monkeypatch.setattr(variants, "FULL_REPLAY_SLOTS", 4096)
     monkeypatch.setattr(flops, "MATMUL_SIZE", 256)
-    presets = ["nature", "double", "prioritized"]
+    presets = ["nature", "double", "prioritized", "iqn"]
     figures = measure_variants(
         presets, "pong", steps=30, replay_capacity=1200, device=torch.device("cpu"),
         rounds=2, update_repeats=2,
@@ -51,6 +51,9 @@ def test_every_variants_figures_and_their_ratios(monkeypatch) -> None:
     forward = (figures["double_update_gflop"] - figures["nature_update_gflop"]) * 1e9 / 32
     assert forward == pytest.approx(18_692_096)  # the Nature CNN, 6 Pong actions
     assert figures["variants"] == ",".join(presets)
+    # IQN's update runs its head at N = 64 fractions per state online and K + N' = 96 on the
+    # next states: many times the Nature head's products, all counted.
+    assert figures["iqn_update_gflop"] > 2 * figures["nature_update_gflop"]
 
 
 def test_the_list_of_variants() -> None:

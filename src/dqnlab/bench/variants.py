@@ -3,7 +3,8 @@
 Every variant is its shipped preset on the same game, with replays of the same size filled
 with the same frames. Per variant: the minibatch draw (for prioritized replay, with the
 priority update that follows every update), the update alone (with its GFLOP/s against a
-dense float32 matrix multiply's timed right after it, `flops.py`), and training frames/s once
+dense float32 matrix multiply's timed right after it; its FLOPs counted by
+PyTorch's `FlopCounterMode` on one update), and training frames/s once
 learning runs, measured in alternating rounds so that a change in the machine's load falls
 on every variant alike. Frames/s are also given as a ratio to the `nature` preset's in the
 same run (and prioritized replay's to uniform's), with the share of each timed part of a
@@ -20,17 +21,18 @@ from typing import Any
 
 import numpy as np
 import torch
+from torch.utils.flop_counter import FlopCounterMode
 
 from dqnlab.algorithm.prioritized import measure_sampling
 from dqnlab.algorithm.replay import ReplayMemory
-from dqnlab.bench.flops import agent_network_flops, measure_matmul, update_flop_figures
+from dqnlab.bench.flops import measure_matmul, update_flop_figures
 from dqnlab.bench.measure import machine_figures, measure_training
 from dqnlab.config import Config, preset_names, resolve_config
 from dqnlab.errors import ConfigError
 from dqnlab.run.lockstep import play_games
 from dqnlab.run.state import TrainingState
 
-FAMILY = ("nature", "double", "dueling", "prioritized", "c51", "rainbow")
+FAMILY = ("nature", "double", "dueling", "prioritized", "c51", "rainbow", "qrdqn", "iqn")
 FULL_REPLAY_SLOTS = 1_000_000
 
 
@@ -130,7 +132,13 @@ def measure_variants(
 
         figures[f"{preset}_sample_us"] = _median_us(sample_and_tell, 1000)
         batch = _sample(replay, config)
-        for _ in range(3):
+        # The first warm-up update counted by PyTorch's own FLOP counter: the products of
+        # whatever the preset's parts compute (IQN's fraction samples, C51's projection),
+        # where `flops.py`'s formula knows the shipped TD losses' passes only.
+        with FlopCounterMode(display=False) as counter:
+            agent.update(batch)
+        flop = counter.get_total_flops()
+        for _ in range(2):
             agent.update(batch)
 
         def update(agent: Any = agent, batch: Any = batch) -> None:
@@ -139,7 +147,6 @@ def measure_variants(
         update_ms = _median_us(update, update_repeats) / 1e3
         figures[f"{preset}_update_ms"] = update_ms
         matmul = measure_matmul(device)
-        flop = agent_network_flops(agent).update(config.batch_size, config.target)
         figures.update(update_flop_figures(f"{preset}_", flop, update_ms, matmul))
         figures[f"{preset}_matmul_gflop_per_s"] = matmul.median_gflop_per_s
         # Past the replay start and the epsilon anneal, as for most of a run.
