@@ -63,7 +63,8 @@ def load_object(setting: str, path: str) -> Any:
     try:
         return getattr(importlib.import_module(module_name), attribute)
     except (ImportError, AttributeError) as error:
-        raise ConfigError(f"{setting} = {path!r} cannot be loaded: {error}") from None
+        reason = " ".join(str(error).split())  # one line, whatever the module raised
+        raise ConfigError(f"{setting} = {path!r} cannot be loaded: {reason}") from None
 
 
 def declared_settings(setting: str, part: Any) -> dict[str, PartSetting]:

@@ -301,3 +301,18 @@ def test_prioritized_replay_refuses_a_loss_part_without_priorities_before_the_ru
     with pytest.raises(ConfigError, match="gives no priorities, which replay_sampling"):
         Agent(Linear1([1.0, 2.0]), 2, config, torch.device("cpu"), seed=0,
               input_shape=(1, 1), observation_dtype=np.dtype(np.float32))  # fmt: skip
+
+
+def test_an_agent_built_without_its_input_shape_refuses_at_the_first_update(
+    monkeypatch,
+) -> None:
+    module = types.ModuleType("user_parts_3")
+    module.HalfLoss = HalfLoss  # type: ignore[attr-defined]
+    monkeypatch.setitem(sys.modules, "user_parts_3", module)
+    config = dataclasses.replace(
+        NATURE, loss="user_parts_3:HalfLoss", replay_sampling="prioritized", history_length=1
+    )
+    agent = Agent(Linear1([1.0, 2.0]), 2, config, torch.device("cpu"), seed=0)
+    with pytest.raises(ConfigError, match="gives no priorities, which replay_sampling") as error:
+        agent.update(_vector_batch())
+    assert "\n" not in str(error.value)

@@ -160,10 +160,13 @@ class Agent:
         with torch.no_grad():
             output = self.loss(self.online, self.target, batch)
         if output.priorities is None:
-            raise ConfigError(
-                f"loss = {self.config.loss!r} gives no priorities, which replay_sampling = "
-                '"prioritized" needs'
-            )
+            raise self._no_priorities()
+
+    def _no_priorities(self) -> ConfigError:
+        return ConfigError(
+            f"loss = {self.config.loss!r} gives no priorities, which replay_sampling = "
+            '"prioritized" needs'
+        )
 
     def act(self, stacked_observation: np.ndarray, epsilon: float, training: bool = False) -> int:
         """The policy's action on one stacked observation (`choose`). In `training`, a
@@ -241,6 +244,8 @@ class Agent:
         loss, priorities = step(
             frames, next_frames, actions, rewards, terminals, discounts, weights
         )
+        if priorities is None and self.config.replay_sampling == "prioritized":
+            raise self._no_priorities()  # an agent built without its input shape checks here
         self.updates += 1
         return loss, priorities
 

@@ -155,7 +155,9 @@ class QHead(nn.Module):
 
     Each stream is a hidden layer of `hidden_width` units and ReLU (none when `hidden_width`
     is None), then a linear output layer; with `noisy` every one of these layers is a
-    `NoisyLinear` (Rainbow replaces all linear layers; dqn-family.md 6.1).
+    `NoisyLinear`. On the Atari networks these are all the linear layers, as Rainbow has
+    it (Hessel et al. 2018, section 2: noisy layers replace the fully connected ones); an
+    MLP's or an encoder's hidden layers belong to the torso and stay plain.
 
     `dueling` (Wang et al. 2016; dqn-family.md 2.1): a value stream with
     `outputs_per_action` outputs and an advantage stream with actions x outputs_per_action,

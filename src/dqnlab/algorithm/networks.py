@@ -27,7 +27,6 @@ returns a `torch.nn.Module`, the network giving (batch, num_actions) and the tor
 
 from __future__ import annotations
 
-import importlib
 import math
 from collections.abc import Sequence
 from typing import NamedTuple
@@ -48,6 +47,7 @@ from dqnlab.algorithm.image_networks import (
 from dqnlab.config import Config
 from dqnlab.envs.spaces import ObservationLayout
 from dqnlab.errors import ConfigError
+from dqnlab.parts import load_object
 
 
 class MLP(nn.Module):
@@ -371,11 +371,7 @@ def _user_module(
     """The module `factory(*arguments)` of the setting's `module:factory`, and its output for
     a probe batch of 2 zero inputs in the stored dtype; the user's code failing in any way
     is a one-line ConfigError naming the setting."""
-    module_name, _, attribute = name.partition(":")
-    try:
-        factory = getattr(importlib.import_module(module_name), attribute)
-    except (ImportError, AttributeError) as error:
-        raise ConfigError(f"{setting} = {name!r} cannot be loaded: {_one_line(error)}") from None
+    factory = load_object(setting, name)
     try:
         module = factory(*arguments)
     except Exception as error:  # noqa: BLE001 - the user's code: report, don't crash
@@ -394,7 +390,3 @@ def _user_module(
     if not isinstance(output, torch.Tensor):
         raise ConfigError(f"{setting} {name!r} returns {type(output)}, not a tensor")
     return module, output
-
-
-def _one_line(error: BaseException) -> str:
-    return " ".join(str(error).split())

@@ -124,7 +124,9 @@ class Config:
     noisy: bool = _setting(
         False,
         "Factorised Gaussian noisy linear layers in the head (Fortunato et al. 2018), fresh "
-        "noise for every action and every update; the mean weights when evaluating",
+        "noise for every action and every update; the mean weights when evaluating. On the "
+        "Atari networks the head holds every linear layer; an MLP's hidden layers (the "
+        "torso's) stay plain",
     )
     noisy_sigma0: float = _setting(
         0.5, "Initial noise scale sigma_0 of noisy layers (sigma = sigma_0 / sqrt(fan in))"

@@ -42,10 +42,9 @@ import numpy as np
 import torch
 from torch import nn
 
-from dqnlab.algorithm.agent import epsilon_at
 from dqnlab.algorithm.replay import ReplayMemory
 from dqnlab.config import Config, derive_seeds
-from dqnlab.run.state import FinishedGame, TrainingState
+from dqnlab.run.state import FinishedGame, TrainingState, choose_actions
 
 # PyTorch's intra-op thread count is per thread (OpenMP's): on CPU the actor's batched
 # forward of a few states takes one, and the training thread one fewer than it had, so
@@ -55,7 +54,7 @@ ACTOR_THREADS = 1
 
 
 @dataclass
-class Round:
+class ActedSteps:
     """One call's agent steps, acted and not yet learned from: what the replay is given."""
 
     first: int  # the agent step of its first environment
@@ -82,7 +81,7 @@ class Round:
         }
 
     @classmethod
-    def from_state_dict(cls, state: dict[str, Any]) -> Round:
+    def from_state_dict(cls, state: dict[str, Any]) -> ActedSteps:
         return cls(
             int(state["first"]),
             state["observations"].numpy(),
@@ -136,7 +135,7 @@ class ActorLearnerState(TrainingState):
         # The update count u(t) is counted from where the actor starts: (step, updates).
         self.update_base = (0, 0)
         self.snapshots: dict[int, nn.Module] = {}  # update number -> the online net then
-        self.pending: deque[Round] = deque()
+        self.pending: deque[ActedSteps] = deque()
         period = config.update_period_steps
         self.capacity = max(2, -(-2 * self.refresh * period // len(self.envs)))  # rounds
         self.learner_frames = sum(env.frames for env in self.envs)
@@ -202,7 +201,7 @@ class ActorLearnerState(TrainingState):
         seconds["total"] += perf_counter() - start
         return round_.finished
 
-    def _next_round(self) -> Round:
+    def _next_round(self) -> ActedSteps:
         if not self.threaded:
             if not self.pending:
                 if self._threads is not None:
@@ -247,17 +246,17 @@ class ActorLearnerState(TrainingState):
         config = self.config
         period, start = config.update_period_steps, config.replay_start_steps
 
-        def through(last: int) -> int:  # update steps in 1..last
+        def update_steps_until(last: int) -> int:  # the steps in 1..last that update
             return last // period - start // period if last > start else 0
 
         base_step, base_updates = self.update_base
-        return base_updates + through(step) - through(base_step)
+        return base_updates + update_steps_until(step) - update_steps_until(base_step)
 
     def _snapshot_for(self, step: int) -> nn.Module:
         """The network copy the round after agent step `step` acts with."""
-        return self.snapshots[self._needed(step)]
+        return self.snapshots[self._snapshot_update(step)]
 
-    def _needed(self, step: int) -> int:
+    def _snapshot_update(self, step: int) -> int:
         """The update number of that copy: the last multiple of K at least K updates
         back, or the network the actor started with (update_base's) before there is one."""
         refresh = self.refresh
@@ -294,7 +293,7 @@ class ActorLearnerState(TrainingState):
                         if self._stop:
                             return
                         self._lock.wait()
-                    self._busy, self._acting_on = True, self._needed(self.actor_steps)
+                    self._busy, self._acting_on = True, self._snapshot_update(self.actor_steps)
                     network = self.snapshots[self._acting_on]
                 round_ = self._act_round(network)
                 with self._lock:
@@ -313,23 +312,18 @@ class ActorLearnerState(TrainingState):
             not (self._pause or self._stop)
             and self.actor_steps < self.config.total_steps
             and len(self.pending) < self.capacity
-            and self._needed(self.actor_steps) in self.snapshots
+            and self._snapshot_update(self.actor_steps) in self.snapshots
         )
 
-    def _act_round(self, network: nn.Module) -> Round:
+    def _act_round(self, network: nn.Module) -> ActedSteps:
         """One agent step in each environment (fewer at the end of the budget), acted with
         `network`: the acting half of `TrainingState.advance`, handing the transitions on."""
         config, seconds = self.config, self.seconds
         count = min(len(self.envs), config.total_steps - self.actor_steps)
         first = self.actor_steps + 1
         start = perf_counter()
-        epsilons = [epsilon_at(step - 1, config) for step in range(first, first + count)]
-        acting = self.acting
-        acting.online = network
-        if count == 1:  # as TrainingState.advance: an agent that overrides `act` still acts
-            actions = [acting.act(self.stacked[0], epsilons[0], training=True)]
-        else:
-            actions = acting.act_batch(self.stacked[:count], epsilons, training=True)
+        self.acting.online = network
+        actions, epsilons = choose_actions(self.acting, self.stacked, first, count, config)
         acted = perf_counter()
         # The observations acted on, copied at once: the histories move on as they step.
         observations = self.stacked[:count, -1].copy()
@@ -351,7 +345,7 @@ class ActorLearnerState(TrainingState):
         seconds["act"] += acted - start
         seconds["env"] += perf_counter() - acted
         frames = sum(env.frames for env in self.envs)
-        return Round(
+        return ActedSteps(
             first, observations, actions, rewards, terminals, last, finished, frames,
             epsilons[-1],
         )  # fmt: skip
@@ -409,7 +403,7 @@ class ActorLearnerState(TrainingState):
             network = copy.deepcopy(self.agent.online).requires_grad_(False)
             network.load_state_dict(weights)
             self.snapshots[int(update)] = network
-        self.pending = deque(Round.from_state_dict(saved) for saved in actor["pending"])
+        self.pending = deque(ActedSteps.from_state_dict(saved) for saved in actor["pending"])
         self.learner_frames = int(actor["learner_frames"])
 
     def close(self) -> None:

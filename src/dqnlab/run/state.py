@@ -27,7 +27,7 @@ import numpy as np
 import psutil
 import torch
 
-from dqnlab.algorithm.agent import build_agent, epsilon_at
+from dqnlab.algorithm.agent import Agent, build_agent, epsilon_at
 from dqnlab.algorithm.compression import expected_frame_bytes
 from dqnlab.algorithm.heldout import HeldOutSet, HeldOutStatistics
 from dqnlab.algorithm.losses import importance_exponent_at
@@ -59,12 +59,34 @@ class TrainingDiverged(DqnlabError):
     """The loss or the weights stopped being finite."""
 
 
+def diverged(what: str, when: str) -> TrainingDiverged:
+    """The error for `what` (the loss, a weight) found non-finite `when`."""
+    return TrainingDiverged(
+        f"{what} became NaN or infinite {when}: training stopped; the last complete "
+        "checkpoint and the best network are kept as they were"
+    )
+
+
+def choose_actions(
+    agent: Agent, stacked: np.ndarray, first: int, count: int, config: Config
+) -> tuple[list[int], list[float]]:
+    """The actions of the first `count` environments on their stacked observations, whose
+    agent steps are `first`, `first` + 1, ..., each under its step's epsilon (returned too):
+    one batched choice, or `act` for one environment (an agent that overrides `act` still
+    acts). The sequential loop and the actor thread (`concurrent.py`) both act here."""
+    epsilons = [epsilon_at(step - 1, config) for step in range(first, first + count)]
+    if count == 1:
+        return [agent.act(stacked[0], epsilons[0], training=True)], epsilons
+    return agent.act_batch(stacked[:count], epsilons, training=True), epsilons
+
+
 class TrainingState:
     """Everything a run trains with: the training environments (`num_envs`, `env` the
     first) and the evaluation environment, the agent, the replay memory, a frame history per
     environment and the step counter.
 
-    `advance()` is one agent step of the Nature algorithm per environment; the training
+    `advance()` is one agent step per environment (act, store, and update when due, with the
+    parts the settings choose: Nature's, Rainbow's, a user's); the training
     loop (`dqnlab.run.train`) decides when to evaluate, log and save.
     """
 
@@ -165,12 +187,8 @@ class TrainingState:
         count = len(self.envs) if max_steps is None else min(len(self.envs), max_steps)
         first = self.steps + 1
         start = perf_counter()
-        epsilons = [epsilon_at(step - 1, config) for step in range(first, first + count)]
+        actions, epsilons = choose_actions(self.agent, self.stacked, first, count, config)
         self.epsilon = epsilons[-1]
-        if count == 1:  # `act` is act_batch of one; an agent that overrides it still acts
-            actions = [self.agent.act(self.stacked[0], epsilons[0], training=True)]
-        else:
-            actions = self.agent.act_batch(self.stacked[:count], epsilons, training=True)
         acted = perf_counter()
         replay = self.replay
         finished, env_seconds = self.step_environments(
@@ -255,10 +273,7 @@ class TrainingState:
                 assert batch.indices is not None and priorities is not None  # Agent checks
                 self.replay.update_priorities(batch.indices, priorities)
             if self.check_every_update and not torch.isfinite(loss):
-                raise TrainingDiverged(
-                    f"the loss became NaN or infinite at step {step}: training stopped; the "
-                    "last complete checkpoint and the best network are kept as they were"
-                )
+                raise diverged("the loss", f"at step {step}")
             self.loss_sum += loss
             self.losses += 1
             updated = perf_counter()
@@ -376,17 +391,10 @@ class TrainingState:
     def check_finite(self) -> None:
         """Stop before a checkpoint or a best network could keep non-finite values."""
         if not torch.isfinite(self.loss_sum):
-            raise TrainingDiverged(
-                f"the loss became NaN or infinite by step {self.steps}: training stopped; "
-                "the last complete checkpoint and the best network are kept as they were"
-            )
+            raise diverged("the loss", f"by step {self.steps}")
         for name, parameter in self.agent.online.named_parameters():
             if not torch.isfinite(parameter).all():
-                raise TrainingDiverged(
-                    f"the network weight {name} became NaN or infinite by step {self.steps}: "
-                    "training stopped; the last complete checkpoint and the best network "
-                    "are kept as they were"
-                )
+                raise diverged(f"the network weight {name}", f"by step {self.steps}")
 
     def close(self) -> None:
         for env in self.envs:

@@ -1,5 +1,6 @@
-"""The training loop: the Nature algorithm's steps (`state.TrainingState.advance`), and
-around them, each in a method of its own, what a run does besides learning.
+"""The training loop: the algorithm's steps (`state.TrainingState.advance`, with the parts
+the settings choose), and around them, each in a method of its own, what a run does
+besides learning.
 
     for every step:      advance the algorithm one agent step (one per environment)
     a game ended:        log its raw score                               (_end_game)
