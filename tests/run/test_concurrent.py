@@ -248,7 +248,13 @@ def assert_same_run(reference: Path, resumed: Path) -> None:
         assert csv_rows(reference / name, timing) == csv_rows(resumed / name, timing), name
 
 
-@pytest.mark.parametrize("name", list(RESUMED))
+@pytest.mark.parametrize(
+    "name",
+    # "background evaluations" is one environment with the actor too: "one env" alone runs
+    # under the slow marker, for CI's time.
+    [pytest.param(name, marks=pytest.mark.slow) if name == "one env" else name
+     for name in RESUMED],
+)  # fmt: skip
 def test_a_killed_actor_learner_run_resumes_bit_for_bit(tmp_path: Path, name: str) -> None:
     args = RESUMED[name]
     reference, resumed = tmp_path / "reference", tmp_path / "resumed"
