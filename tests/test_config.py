@@ -96,7 +96,7 @@ def test_overrides_are_typed() -> None:
         ("target=triple", "target = 'triple' is not one of: max, double"),
         (
             "replay_sampling=ranked",
-            "replay_sampling = 'ranked' is not one of: uniform, prioritized",
+            "replay_sampling = 'ranked' is not one of: uniform, prioritized, or module:Name",
         ),
         ("distributional=qr", "distributional = 'qr' is not one of: none, c51"),
         ("loss=huber", "loss = 'huber' is not one of: auto, or module:Name"),

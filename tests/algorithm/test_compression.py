@@ -70,7 +70,7 @@ def test_batches_are_bit_identical_to_the_raw_replay_through_wraparound() -> Non
             samples += 32
         # Every slot of the ring, including the ones whose histories cross the ring's end,
         # chunk boundaries and episode starts.
-        valid = np.flatnonzero(raw._valid(np.arange(raw.size)))
+        valid = np.flatnonzero(raw.valid(np.arange(raw.size)))
         for begin_index in range(0, len(valid) - 32, 32):
             indices = valid[begin_index : begin_index + 32]
             assert_same_batch(raw.gather(indices), packed.gather(indices))

@@ -7,6 +7,8 @@ import pytest
 import torch
 
 from dqnlab.algorithm.replay import FrameHistory, ReplayMemory, replay_bytes
+from dqnlab.algorithm.samplers import PrioritizedSampler
+from dqnlab.config import resolve_config
 from dqnlab.errors import ResourceError
 
 
@@ -97,7 +99,7 @@ def test_wraparound_overwrites_oldest_and_excludes_histories_into_new_data() -> 
         replay.add(frame(value), action=0, reward=0.0, terminal=False)
     assert replay.size == 10 and replay.position == 5
     assert [int(f[0, 0]) for f in replay.frames] == [11, 12, 13, 14, 15, 6, 7, 8, 9, 10]
-    valid = replay._valid(np.arange(10))
+    valid = replay.valid(np.arange(10))
     # Slot 4 (15) is the newest; slots 5,6,7 (6,7,8) lack their full history; slot 8 (9) has 6,7,8.
     assert valid.tolist() == [True, True, True, True, False, False, False, False, True, True]
     batch = replay.gather(np.array([1]))  # obs 12: history crosses the array end
@@ -296,7 +298,7 @@ def test_n_step_windows_by_hand() -> None:
     assert (batch.rewards[0], batch.terminals[0]) == (55.25, 0.0)
     assert values(batch.observations[0]) == [0, 0, 0, 31]
     assert values(batch.next_observations[0]) == [31, 32, 33, 34]
-    for start in np.flatnonzero(replay._valid(np.arange(replay.capacity))):
+    for start in np.flatnonzero(replay.valid(np.arange(replay.capacity))):
         assert_walked(replay, np.array([start]))
 
 
@@ -304,10 +306,10 @@ def test_n_step_windows_near_the_write_head_wait_for_their_last_slot() -> None:
     replay = n_step_memory(batch=32)
     for value in range(1, 11):  # one episode going on: slots 0..9
         replay.add(frame(value), action=0, reward=1.0, terminal=False)
-    assert np.flatnonzero(replay._valid(np.arange(40))).tolist() == list(range(7))
+    assert np.flatnonzero(replay.valid(np.arange(40))).tolist() == list(range(7))
     assert max(np.concatenate([replay.sample_indices(32) for _ in range(30)])) == 6
     replay.add_last(frame(11))  # truncated at slot 10: the windows ending there are complete
-    assert np.flatnonzero(replay._valid(np.arange(40))).tolist() == list(range(10))
+    assert np.flatnonzero(replay.valid(np.arange(40))).tolist() == list(range(10))
     assert replay.gather(np.arange(32) % 10).discounts[7:10].tolist() == [0.125, 0.25, 0.5]
 
 
@@ -316,7 +318,7 @@ def test_n_step_windows_across_the_ring_end() -> None:
     for value in range(1, 16):  # one long episode: slots hold 11..15, 6..10; newest slot 4
         replay.add(frame(value), action=value % 3, reward=float(value), terminal=False)
     # Full histories (age >= 3) and windows ending at or before the newest slot.
-    assert np.flatnonzero(replay._valid(np.arange(10))).tolist() == [0, 1, 8, 9]
+    assert np.flatnonzero(replay.valid(np.arange(10))).tolist() == [0, 1, 8, 9]
     batch = replay.gather(np.array([9]))  # 10 + 11/2 + 12/4, next state 13 at slot 2
     assert batch.rewards[0] == 18.5 and batch.discounts[0] == 0.125
     assert values(batch.observations[0]) == [7, 8, 9, 10]
@@ -337,7 +339,7 @@ def test_n_step_batches_equal_a_walk_over_the_stored_steps(n_step: int) -> None:
         else:
             reward = float(np.float32(rng.uniform(-1, 1)))
             replay.add(frame(step % 250 + 1), int(rng.integers(4)), reward, False)
-        valid = np.flatnonzero(replay._valid(np.arange(29)))
+        valid = np.flatnonzero(replay.valid(np.arange(29)))
         for begin in range(0, len(valid), 8):
             assert_walked(replay, np.resize(valid[begin : begin + 8], 8))
 
@@ -404,7 +406,15 @@ def test_valid_slots_and_nonzero_priorities_are_the_same_after_every_write(
         "device": {"device": torch.device("cpu")},
     }[storage]
     replay = ReplayMemory(
-        23, (2, 2), np.uint8, 4, 8, seed=0, n_step=n_step, sampling=sampling, **options
+        23,
+        (2, 2),
+        np.uint8,
+        4,
+        8,
+        seed=0,
+        n_step=n_step,
+        **options,
+        sampler=PrioritizedSampler(importance_exponent=0.5) if sampling == "prioritized" else None,
     )
     rng = np.random.default_rng(5)
     written_at = [-1] * 23
@@ -415,22 +425,29 @@ def test_valid_slots_and_nonzero_priorities_are_the_same_after_every_write(
         else:
             replay.add(frame(step % 250), 0, float(rng.random()), bool(rng.random() < 0.1))
         expected = written_valid(replay, written_at)
-        assert replay._valid(np.arange(23)).tolist() == expected.tolist(), step
-        if replay.priorities is not None:
-            assert (replay.priorities.tree.leaves > 0).tolist() == expected.tolist(), step
+        assert replay.valid(np.arange(23)).tolist() == expected.tolist(), step
+        if sampling == "prioritized":
+            leaves = replay.sampler.priorities.tree.leaves
+            assert (leaves > 0).tolist() == expected.tolist(), step
         if step % 7 == 0 and expected.any():
-            batch = replay.sample(importance_exponent=0.5)
+            batch = replay.sample()
             assert batch.indices is not None and expected[batch.indices].all()
-            replay.update_priorities(batch.indices, rng.exponential(size=8))
+            replay.sampler.tell(batch, rng.exponential(size=8))
 
 
 # Prioritized sampling -----------------------------------------------------------------
 
 
-def prioritized_memory(n_step: int = 1, **options) -> ReplayMemory:
+def prioritized_sampler(beta: float = 0.5) -> PrioritizedSampler:
+    return PrioritizedSampler(
+        priority_exponent=0.5, priority_epsilon=0.25, importance_exponent=beta
+    )
+
+
+def prioritized_memory(n_step: int = 1, beta: float = 0.5, **options) -> ReplayMemory:
     replay = ReplayMemory(
         50, (2, 2), np.uint8, 4, 32, seed=1, n_step=n_step, discount=0.9,
-        sampling="prioritized", priority_exponent=0.5, priority_epsilon=0.25, **options,
+        sampler=prioritized_sampler(beta), **options,
     )  # fmt: skip
     rng = np.random.default_rng(2)
     for step in range(80):  # round the ring once and a half, episodes of 9
@@ -443,20 +460,20 @@ def prioritized_memory(n_step: int = 1, **options) -> ReplayMemory:
 
 def test_new_transitions_enter_at_the_largest_priority_seen() -> None:
     replay = prioritized_memory()
-    assert replay.priorities is not None
-    leaves = replay.priorities.tree.leaves
-    valid = replay._valid(np.arange(50))
+    assert replay.sampler.priorities is not None
+    leaves = replay.sampler.priorities.tree.leaves
+    valid = replay.valid(np.arange(50))
     assert leaves[valid].tolist() == [1.0] * int(valid.sum())  # p_1 = 1, before any update
-    batch = replay.sample(importance_exponent=0.4)
+    batch = replay.sample()
     assert batch.indices is not None
     indices = batch.indices.copy()
     errors = np.full(32, 0.5)
     errors[-1] = 8.75
-    replay.update_priorities(indices, errors)
+    replay.sampler.update(indices, errors)
     assert leaves[indices[-1]] == 3.0  # (8.75 + 0.25)^0.5
     others = indices[indices != indices[-1]]
     assert np.all(leaves[others] == np.sqrt(0.75))
-    assert replay.priorities.max_priority == 9.0
+    assert replay.sampler.priorities.max_priority == 9.0
     replay.add(frame(200), 0, 0.0, False)
     replay.add(frame(201), 0, 0.0, False)  # completes the window of the slot before
     assert leaves[(replay.position - 2) % 50] == 3.0  # 9^0.5
@@ -464,13 +481,13 @@ def test_new_transitions_enter_at_the_largest_priority_seen() -> None:
 
 def test_priority_updates_skip_stale_and_invalid_slots_and_take_tensors() -> None:
     replay = prioritized_memory()
-    assert replay.priorities is not None
-    leaves = replay.priorities.tree.leaves
-    batch = replay.sample(importance_exponent=1.0)
+    assert replay.sampler.priorities is not None
+    leaves = replay.sampler.priorities.tree.leaves
+    batch = replay.sample()
     assert batch.indices is not None
     indices = batch.indices.copy()
     final = int(np.flatnonzero(replay.is_last)[0])  # never valid: a priority must not stick
-    replay.update_priorities(np.array([final]), np.array([3.0]))
+    replay.sampler.update(np.array([final]), np.array([3.0]))
     assert leaves[final] == 0.0
     # 30 slots written since the draw: some of the drawn ones now hold new transitions,
     # valid again at the largest priority, which the errors of the old ones must not touch.
@@ -479,48 +496,66 @@ def test_priority_updates_skip_stale_and_invalid_slots_and_take_tensors() -> Non
         replay.add(frame(value), 0, 0.0, False)
     before = leaves.copy()
     assert any(before[i] > 0 for i in indices if i in written)
-    replay.update_priorities(indices, torch.full((32,), 1.75))  # a tensor, as a loss gives
+    replay.sampler.update(indices, torch.full((32,), 1.75))  # a tensor, as a loss gives
     changed = np.flatnonzero(leaves != before)
     expected = {int(i) for i in indices if i not in written and before[i] > 0.0}
     assert expected and set(changed.tolist()) == expected
     assert np.all(leaves[changed] == np.sqrt(2.0))
     with pytest.raises(ValueError, match="3 errors for 2 indices"):
-        replay.update_priorities(np.array([0, 1]), np.ones(3))
+        replay.sampler.update(np.array([0, 1]), np.ones(3))
 
 
 def test_weights_are_the_batch_normalised_importance_weights_of_the_drawn_slots() -> None:
-    replay = prioritized_memory()
-    assert replay.priorities is not None
+    replay = prioritized_memory(beta=0.4)
+    assert replay.sampler.priorities is not None
     rng = np.random.default_rng(3)
     for _ in range(5):
-        batch = replay.sample(importance_exponent=0.4)
+        batch = replay.sample()
         assert batch.indices is not None
-        replay.update_priorities(batch.indices, rng.exponential(size=32))
-    batch = replay.sample(importance_exponent=0.4)
+        replay.sampler.update(batch.indices, rng.exponential(size=32))
+    batch = replay.sample()
     assert batch.indices is not None and batch.weights is not None
-    probabilities = replay.priorities.tree.leaves[batch.indices] / replay.priorities.tree.total
+    tree = replay.sampler.priorities.tree
+    probabilities = tree.leaves[batch.indices] / tree.total
     weights = (replay.size * probabilities) ** -0.4
     np.testing.assert_allclose(batch.weights, weights / weights.max(), rtol=1e-6)
     assert batch.weights.dtype == np.float32 and batch.weights.max() == 1.0
-    with pytest.raises(ValueError, match="importance exponent"):
-        replay.sample()
+
+
+def test_beta_follows_the_runs_schedule_by_the_step_the_sampler_is_asked_at() -> None:
+    config = resolve_config(
+        "prioritized", env="pong", importance_exponent_start=0.4, replay_start_steps=100,
+        total_steps=300, priority_exponent=0.5, priority_epsilon=0.25,
+    )  # fmt: skip
+    replay = prioritized_memory()
+    replay.sampler = PrioritizedSampler(config)  # the same tree, the run's schedule of beta
+    replay.sampler.bind(replay)
+    for index in range(50):
+        replay.sampler.written(index)
+    tree = replay.sampler.priorities.tree
+    for step, beta in ((100, 0.4), (200, 0.7), (300, 1.0), (900, 1.0)):
+        batch = replay.sample(step)
+        assert batch.indices is not None and batch.weights is not None
+        weights = (replay.size * tree.leaves[batch.indices] / tree.total) ** -beta
+        np.testing.assert_allclose(batch.weights, weights / weights.max(), rtol=1e-6)
 
 
 def test_prioritized_draws_follow_the_priorities_of_valid_slots_chi_square() -> None:
     from scipy.stats import chisquare
 
     replay = prioritized_memory(n_step=3)
-    assert replay.priorities is not None
+    assert replay.sampler.priorities is not None
     rng = np.random.default_rng(4)
-    valid = replay._valid(np.arange(50))
-    replay.update_priorities(np.flatnonzero(valid), rng.exponential(size=int(valid.sum())))
+    valid = replay.valid(np.arange(50))
+    replay.sampler.update(np.flatnonzero(valid), rng.exponential(size=int(valid.sum())))
     counts = np.zeros(50, dtype=np.int64)
     for _ in range(2000):
-        batch = replay.sample(importance_exponent=0.5)
+        batch = replay.sample()
         assert batch.indices is not None
         counts += np.bincount(batch.indices, minlength=50)
     assert counts[~valid].sum() == 0
-    expected = replay.priorities.tree.leaves / replay.priorities.tree.total * counts.sum()
+    tree = replay.sampler.priorities.tree
+    expected = tree.leaves / tree.total * counts.sum()
     assert chisquare(counts[valid], expected[valid]).pvalue > 1e-3
 
 
@@ -528,8 +563,8 @@ def test_uniform_sampling_has_no_weights_and_ignores_errors() -> None:
     replay = memory(batch=4)
     fill_episode(replay, first=1, length=10)
     batch = replay.sample()
-    assert batch.weights is None and replay.priorities is None
-    replay.update_priorities(batch.indices, np.ones(4))  # nothing to do
+    assert batch.weights is None and not hasattr(replay.sampler, "priorities")
+    replay.sampler.tell(batch, np.ones(4))  # nothing to do
 
 
 @pytest.mark.parametrize("sampling", ["uniform", "prioritized"])
@@ -551,7 +586,7 @@ def test_n_step_batches_are_the_same_from_compressed_frames_and_a_device_copy(
             for episode in range(9):
                 fill_episode(replay, first=10 * episode + 1, length=8, terminal=episode % 2 == 0)
     for _ in range(10):
-        expected, *others = (r.sample(importance_exponent=0.6) for r in (host, packed, device))
+        expected, *others = (r.sample() for r in (host, packed, device))
         for batch in others:
             assert batch.window is None and expected.window is None
             for name in ("observations", "next_observations"):
@@ -559,8 +594,8 @@ def test_n_step_batches_are_the_same_from_compressed_frames_and_a_device_copy(
             for name in ("indices", "actions", "rewards", "terminals", "discounts", "weights"):
                 assert np.array_equal(getattr(batch, name), getattr(expected, name)), name
         for replay in (host, packed, device):
-            replay.update_priorities(expected.indices, np.arange(32) / 8.0)
-    assert_walked(host, host.sample(importance_exponent=0.6).indices.copy())
+            replay.sampler.tell(expected, np.arange(32) / 8.0)  # uniform: nothing
+    assert_walked(host, host.sample().indices.copy())
 
 
 def test_prioritized_n_step_state_round_trip_through_a_checkpoint(tmp_path) -> None:
@@ -571,35 +606,35 @@ def test_prioritized_n_step_state_round_trip_through_a_checkpoint(tmp_path) -> N
     replay = prioritized_memory(n_step=3)
     rng = np.random.default_rng(7)
     for _ in range(5):
-        batch = replay.sample(importance_exponent=0.5)
-        replay.update_priorities(batch.indices, rng.exponential(size=32))
+        batch = replay.sample()
+        replay.sampler.update(batch.indices, rng.exponential(size=32))
     CheckpointStore(tmp_path).save(1, {"replay": replay.state_dict()}, replay.arrays, None, "f")
     resumed = ReplayMemory(
         50, (2, 2), np.uint8, 4, 32, seed=99, n_step=3, discount=0.9,
-        sampling="prioritized", priority_exponent=0.5, priority_epsilon=0.25,
+        sampler=prioritized_sampler(),
     )  # fmt: skip
     loaded = CheckpointStore(tmp_path).latest("f", into=resumed.arrays)
     assert loaded is not None
     resumed.load_state_dict(loaded.state["replay"])
-    assert resumed.priorities is not None and replay.priorities is not None
-    assert resumed.priorities.max_priority == replay.priorities.max_priority
+    assert resumed.sampler.priorities is not None and replay.sampler.priorities is not None
+    assert resumed.sampler.priorities.max_priority == replay.sampler.priorities.max_priority
     for step in range(10):
-        a, b = replay.sample(importance_exponent=0.5), resumed.sample(importance_exponent=0.5)
+        a, b = replay.sample(), resumed.sample()
         for name in ("indices", "weights", "rewards", "discounts", "observations"):
             assert np.array_equal(getattr(a, name), getattr(b, name)), name
         errors = rng.exponential(size=32)
         for r in (replay, resumed):
-            r.update_priorities(a.indices, errors)
+            r.sampler.update(a.indices, errors)
             r.add(frame(step), 0, 1.0, False)
 
 
 def test_a_state_without_priorities_gives_every_valid_slot_the_largest() -> None:
     uniform = memory(capacity=50, batch=32)
     fill_episode(uniform, first=1, length=30)
-    replay = ReplayMemory(50, (2, 2), np.uint8, 4, 32, seed=0, sampling="prioritized")
+    replay = ReplayMemory(50, (2, 2), np.uint8, 4, 32, seed=0, sampler=PrioritizedSampler())
     for name, array in uniform.arrays.items():
         replay.arrays[name][...] = array
     replay.load_state_dict(uniform.state_dict())
-    assert replay.priorities is not None
-    valid = replay._valid(np.arange(50))
-    assert (replay.priorities.tree.leaves > 0).tolist() == valid.tolist()
+    assert replay.sampler.priorities is not None
+    valid = replay.valid(np.arange(50))
+    assert (replay.sampler.priorities.tree.leaves > 0).tolist() == valid.tolist()

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from dqnlab.algorithm.replay import ReplayMemory
+from dqnlab.algorithm.samplers import PrioritizedSampler
 from dqnlab.algorithm.streams import ReplayStreams
 from dqnlab.run.checkpoints import CheckpointStore
 
@@ -42,6 +43,8 @@ def fill(replays: list[ReplayMemory], streamed: ReplayMemory, steps: int, seed: 
 
 
 def make(capacity: int, seed: int, streams: int = 1, **options) -> ReplayMemory:
+    if options.pop("prioritized", False):  # a sampler of its own for each replay
+        options["sampler"] = PrioritizedSampler(importance_exponent=0.4)
     return ReplayMemory(capacity, SHAPE, np.uint8, 4, 16, seed, streams=streams, **options)
 
 
@@ -49,7 +52,7 @@ OPTIONS = [
     {},
     {"n_step": 3},
     {"compression": "lz4", "chunk_slots": 8},
-    {"n_step": 3, "sampling": "prioritized", "compression": "lz4", "chunk_slots": 8},
+    {"n_step": 3, "prioritized": True, "compression": "lz4", "chunk_slots": 8},
 ]
 
 
@@ -62,16 +65,14 @@ def test_each_transition_is_the_one_its_environment_alone_would_give(options, st
     fill(alone, streamed, steps, seed=steps)
     assert streamed.capacity == STREAMS * segment and streamed.size == sum(a.size for a in alone)
     slots = np.arange(streamed.capacity)
-    valid = streamed._valid(slots)
+    valid = streamed.valid(slots)
     for stream, single in enumerate(alone):
         local = slots[stream * segment : (stream + 1) * segment] - stream * segment
-        assert np.array_equal(
-            valid[stream * segment : (stream + 1) * segment], single._valid(local)
-        )
-    if streamed.priorities is not None:  # the non-zero leaves are exactly the valid slots
-        assert np.array_equal(streamed.priorities.tree.leaves > 0, valid)
+        assert np.array_equal(valid[stream * segment : (stream + 1) * segment], single.valid(local))
+    if options.get("prioritized"):  # the non-zero leaves are exactly the valid slots
+        assert np.array_equal(streamed.sampler.priorities.tree.leaves > 0, valid)
     for _ in range(5):
-        batch = streamed.sample(importance_exponent=0.4 if streamed.priorities else None)
+        batch = streamed.sample()
         assert batch.indices is not None
         indices = batch.indices.copy()
         observations = np.asarray(batch.observations).copy()
@@ -133,7 +134,7 @@ def test_bad_stream_counts_are_refused() -> None:
 
 
 def test_checkpoints_store_each_streams_written_slots_and_resume_exactly(tmp_path: Path) -> None:
-    options = {"n_step": 2, "sampling": "prioritized", "compression": "lz4", "chunk_slots": 8}
+    options = {"n_step": 2, "prioritized": True, "compression": "lz4", "chunk_slots": 8}
     original = make(3 * 30, 5, STREAMS, **options)
     singles = [make(30, 0, **options) for _ in range(STREAMS)]
     fill(singles, original, 12, seed=7)
@@ -157,6 +158,6 @@ def test_checkpoints_store_each_streams_written_slots_and_resume_exactly(tmp_pat
             )
         assert np.array_equal(np.asarray(array), np.asarray(mine)), name
     for _ in range(3):
-        a, b = original.sample(importance_exponent=0.5), resumed.sample(importance_exponent=0.5)
+        a, b = original.sample(), resumed.sample()
         assert np.array_equal(a.indices, b.indices)
         assert np.array_equal(np.asarray(a.observations), np.asarray(b.observations))

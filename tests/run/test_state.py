@@ -8,6 +8,7 @@ import io
 import numpy as np
 import torch
 
+from dqnlab.algorithm.samplers import PrioritizedSampler, UniformSampler
 from dqnlab.run.state import TrainingState, replay_device
 
 
@@ -56,9 +57,9 @@ def test_the_replay_is_built_with_the_configs_n_step_and_sampling(cartpole) -> N
     state = TrainingState(config, torch.device("cpu"))
     replay = state.replay
     assert (replay.n_step, replay.discount) == (3, 0.9)
-    assert replay.priorities is not None
-    assert (replay.priorities.exponent, replay.priorities.epsilon) == (0.5, 0.01)
+    assert isinstance(replay.sampler, PrioritizedSampler)
+    assert (replay.sampler.priorities.exponent, replay.sampler.priorities.epsilon) == (0.5, 0.01)
     state.close()
     uniform = TrainingState(dataclasses.replace(cartpole, replay_capacity=300), torch.device("cpu"))
-    assert uniform.replay.priorities is None and uniform.replay.n_step == 1
+    assert isinstance(uniform.replay.sampler, UniformSampler) and uniform.replay.n_step == 1
     uniform.close()

@@ -50,10 +50,7 @@ def assert_no_history_mixes_environments(state: TrainingState, draws: int = 20) 
     replay = state.replay
     segment = replay.streams.segment
     for _ in range(draws):
-        if replay.priorities is not None:
-            batch = replay.sample(importance_exponent=0.5)
-        else:
-            batch = replay.sample()
+        batch = replay.sample(state.steps)
         assert batch.indices is not None
         frames = np.concatenate(
             [np.asarray(batch.observations), np.asarray(batch.next_observations)], axis=1

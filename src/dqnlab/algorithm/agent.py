@@ -33,6 +33,7 @@ from dqnlab.algorithm.part_generators import (
 )
 from dqnlab.algorithm.policies import build_policy
 from dqnlab.algorithm.replay import Batch
+from dqnlab.algorithm.samplers import needs_priorities
 from dqnlab.algorithm.update_graph import CapturedUpdate, HostToDevice
 from dqnlab.config import Config, derive_seeds
 from dqnlab.envs import Environment
@@ -115,8 +116,8 @@ class Agent:
         )
         self.action_names = list(action_names) if action_names is not None else None
         self.observation_layout = observation_layout
-        if config.replay_sampling == "prioritized" and config.loss != "auto":
-            self._check_priorities()
+        self.needs_priorities = needs_priorities(config)
+        self._check_priorities()
         # The augmentation part draws from a generator of its own, saved with the agent.
         is_image = self.input_shape is not None and is_image_observation(
             self.input_shape[1:], np.dtype(self.observation_dtype or np.float32)
@@ -144,6 +145,8 @@ class Agent:
     def _check_priorities(self) -> None:
         """A user's loss part must give priorities for prioritized replay: ask it once, on a
         minibatch of zeros, before the run starts rather than at its first update."""
+        if not self.needs_priorities or self.config.loss == "auto":
+            return  # the shipped losses give them
         if self.input_shape is None or self.observation_dtype is None:
             return
         zeros = torch.zeros((2, *self.input_shape), dtype=torch_dtype(self.observation_dtype))
@@ -165,7 +168,7 @@ class Agent:
     def _no_priorities(self) -> ConfigError:
         return ConfigError(
             f"loss = {self.config.loss!r} gives no priorities, which replay_sampling = "
-            '"prioritized" needs'
+            f"{self.config.replay_sampling!r} needs"
         )
 
     def act(self, stacked_observation: np.ndarray, epsilon: float, training: bool = False) -> int:
@@ -244,7 +247,7 @@ class Agent:
         loss, priorities = step(
             frames, next_frames, actions, rewards, terminals, discounts, weights
         )
-        if priorities is None and self.config.replay_sampling == "prioritized":
+        if priorities is None and self.needs_priorities:
             raise self._no_priorities()  # an agent built without its input shape checks here
         self.updates += 1
         return loss, priorities

@@ -39,7 +39,7 @@ class Batch:
     # observations the first `history` frames, next_observations the last): a device
     # copies it once, not twice. None for n-step transitions.
     window: np.ndarray | torch.Tensor | None = None
-    # (batch,) int64: the slots the transitions start at, what `update_priorities` is told.
+    # (batch,) int64: the slots the transitions start at, what the sampler is told.
     indices: np.ndarray | None = None
     # (batch,) float32: γ^m; None (a batch built elsewhere): γ, one step.
     discounts: np.ndarray | None = None

@@ -10,12 +10,10 @@ boundary are zeros, as at an episode start while acting (`FrameHistory`; the buf
 minibatch is gathered into are `minibatch.py`'s).
 
 With `n_step` > 1, a sampled transition sums the rewards of up to n stored steps and
-bootstraps from the observation n steps on (`nstep.py`, computed when drawn). With
-`sampling = "prioritized"`, transitions are drawn in proportion to their priorities
-(`prioritized.py`), which the caller updates from their errors (`update_priorities`). The
-tree's non-zero leaves are exactly the slots a transition can start from now (`_valid`):
-each write adjusts the few whose validity it changes (`_refresh_priorities`), so a draw
-never needs rejecting, unlike Dopamine's prioritized replay (the reference note's §8.5).
+bootstraps from the observation n steps on (`nstep.py`, computed when drawn). How
+minibatches are drawn is the replay's sampler's business (`samplers.py`: uniform,
+prioritized, or a user's): the replay tells it of every write and hands it `valid`,
+`sample_indices` and `gather`.
 
 Memory per transition is one frame plus 10 bytes (action, reward, two flags): a 1M Atari
 replay is 7.07 GB, like the Lua code's byte tensor (TransitionTable.lua).
@@ -45,7 +43,6 @@ import torch
 from dqnlab.algorithm.compression import CHUNK_SLOTS, CompressedFrames
 from dqnlab.algorithm.minibatch import Batch, Layout, MinibatchBuffers
 from dqnlab.algorithm.nstep import discount_powers, n_step_targets, window_steps
-from dqnlab.algorithm.prioritized import ProportionalPriorities, importance_weights
 from dqnlab.algorithm.replay_sizes import (  # noqa: F401 - `replay_bytes`: their home before
     _SLOT_OVERHEAD_BYTES,
     check_memory,
@@ -54,10 +51,8 @@ from dqnlab.algorithm.replay_sizes import (  # noqa: F401 - `replay_bytes`: thei
     open_chunks,
     replay_bytes,
 )
+from dqnlab.algorithm.samplers import UniformSampler
 from dqnlab.algorithm.streams import ReplayStreams, WrittenSlots
-from dqnlab.config import CHOICES
-
-SAMPLINGS = CHOICES["replay_sampling"]
 
 
 class ReplayMemory:
@@ -76,9 +71,7 @@ class ReplayMemory:
         chunk_slots: int = CHUNK_SLOTS,
         n_step: int = 1,
         discount: float = 0.99,
-        sampling: str = "uniform",
-        priority_exponent: float = 0.6,
-        priority_epsilon: float = 1e-6,
+        sampler: Any = None,
         streams: int = 1,
     ) -> None:
         """`device`: also keep the frames there and gather minibatches there (see the
@@ -88,14 +81,12 @@ class ReplayMemory:
         measured compressed size of one of this game's frames, which the memory check may
         count on (without it, the check asks for the raw size: see `replay_sizes.check_projection`).
         `n_step` and `discount` (γ; 0.99 is the Config's default): the returns a sampled
-        transition sums (`dqnlab.algorithm.nstep`). `sampling`: "uniform" or
-        "prioritized", with `priority_exponent` (α) and `priority_epsilon` (ε)
-        (`dqnlab.algorithm.prioritized`). `streams`: rings of capacity // streams slots,
+        transition sums (`dqnlab.algorithm.nstep`). `sampler`: how `sample` draws
+        (`dqnlab.algorithm.samplers`; uniform when None), bound to this replay here.
+        `streams`: rings of capacity // streams slots,
         one per environment (`streams.py`; `add` says which)."""
         if n_step < 1:
             raise ValueError(f"n_step = {n_step} must be at least 1")
-        if sampling not in SAMPLINGS:
-            raise ValueError(f"sampling = {sampling!r} is not one of: {', '.join(SAMPLINGS)}")
         frame_dtype = np.dtype(frame_dtype)
         # One stream: the whole ring, whatever its size; more: each holds a transition.
         self.streams = ReplayStreams(
@@ -155,17 +146,8 @@ class ReplayMemory:
             if n_step == 1
             else self._buffers.layout(2 * history, next_column=history)
         )
-        self.priorities: ProportionalPriorities | None = None
-        if sampling == "prioritized":
-            self.priorities = ProportionalPriorities(capacity, priority_exponent, priority_epsilon)
-            self._uniforms = np.zeros(batch_size)
-            self._sampled = np.zeros(batch_size, dtype=np.int64)
-            self._probabilities = np.zeros(batch_size)
-            self._n_step.batch.weights = np.ones(batch_size, dtype=np.float32)
-            # The slots whose validity writing slot 0 can change (`_refresh_priorities`).
-            self._refresh_offsets = np.arange(-n_step, history_length, dtype=np.int64)
-        # Where the rings were at the last prioritized draw: what `update_priorities` skips.
-        self._sampled_mark = self.streams.mark()
+        self.sampler = sampler if sampler is not None else UniformSampler()
+        self.sampler.bind(self)
 
     @property
     def position(self) -> int:
@@ -248,40 +230,14 @@ class ReplayMemory:
         self.rewards[slot] = reward
         self.terminals[slot] = terminal
         self.is_last[slot] = is_last
-        if self.priorities is not None:
-            self._refresh_priorities(slot)
+        self.sampler.written(slot)
         frames = self.frames
         if isinstance(frames, CompressedFrames) and frames.sealed_slots != sealed:
             check_projection(frames, self.capacity - self.size, self.raw_frame_bytes)
 
-    def _refresh_priorities(self, slot: int) -> None:
-        """Keep the non-zero leaves exactly the valid slots (`_valid`) after writing `slot`.
-
-        A write can change the validity of these slots alone: the one written (now the
-        newest: no next state yet), the n_step before it (a window may now end in it: valid
-        from now on, at the largest priority, Schaul et al. 2016, Algorithm 1) and, once
-        the ring is full, the history_length - 1 after it (the oldest: their histories now
-        reach back into the slot just overwritten). A few leaves, set in one tree update.
-        """
-        assert self.priorities is not None
-        slots = self.streams.wrap(np.array([slot]), self._refresh_offsets)[0]
-        leaves = self.priorities.tree.leaves[slots]
-        wanted = np.where(leaves > 0.0, leaves, self.priorities.new_leaf)
-        wanted[~self._valid(slots)] = 0.0
-        changed = wanted != leaves
-        if changed.any():
-            self.priorities.tree.set(slots[changed], wanted[changed])
-
-    def _rebuild_priorities(self) -> None:
-        """Every valid slot at the largest priority, the others 0 (a state saved without
-        priorities)."""
-        assert self.priorities is not None
-        valid = self._valid(np.arange(self.capacity))
-        self.priorities.tree.load(np.where(valid, self.priorities.new_leaf, 0.0))
-
     # Sampling -------------------------------------------------------------------------
 
-    def _valid(self, slots: np.ndarray) -> np.ndarray:
+    def valid(self, slots: np.ndarray) -> np.ndarray:
         """Which slots can start a sampled transition: not an episode's last observation,
         its next state (slot t + m, `window_steps`) stored already, and, once its ring is
         full, its history not reaching back into overwritten (newest) data."""
@@ -301,7 +257,7 @@ class ReplayMemory:
 
     def has_transition(self) -> bool:
         """Whether a complete transition (o_t to o_{t+m}) is stored, so sampling can succeed."""
-        return bool(self._valid(self.streams.slots_of(np.arange(self.size))).any())
+        return bool(self.valid(self.streams.slots_of(np.arange(self.size))).any())
 
     def sample_indices(self, count: int, rng: np.random.Generator | None = None) -> np.ndarray:
         """Uniform with replacement over valid transitions, by rejection (as the Lua code),
@@ -313,7 +269,7 @@ class ReplayMemory:
         while filled < count:
             ranks = rng.integers(0, max(self.size, 1), size=2 * (count - filled))
             candidates = self.streams.slots_of(ranks)
-            accepted = candidates[self._valid(candidates)][: count - filled]
+            accepted = candidates[self.valid(candidates)][: count - filled]
             indices[filled : filled + len(accepted)] = accepted
             filled += len(accepted)
             rejected_rounds = 0 if len(accepted) else rejected_rounds + 1
@@ -321,49 +277,16 @@ class ReplayMemory:
                 raise RuntimeError("the replay memory holds no complete transition yet")
         return indices
 
-    def sample(self, importance_exponent: float | None = None) -> Batch:
-        """A minibatch: uniform (`sample_indices`), or prioritized with importance weights
-        of exponent β = `importance_exponent` (which the caller anneals) in `weights`."""
-        if self.priorities is None:
-            return self.gather(self.sample_indices(self.batch_size))
-        if importance_exponent is None:
-            raise ValueError("prioritized sampling needs the importance exponent (beta)")
-        if not self.priorities.tree.total > 0.0:
-            raise RuntimeError("the replay memory holds no complete transition yet")
-        self.rng.random(out=self._uniforms)
-        self.priorities.sample(self._uniforms, self._sampled, self._probabilities)
-        batch = self.gather(self._sampled)
-        assert batch.weights is not None
-        # N = the slots stored; it cancels in the batch-max normalisation.
-        importance_weights(self._probabilities, self.size, importance_exponent, batch.weights)
-        self._sampled_mark = self.streams.mark()
+    def sample(self, step: int = 0) -> Batch:
+        """The minibatch of the update at agent step `step`, as the sampler draws it."""
+        batch: Batch = self.sampler.sample(step)
         return batch
 
-    def update_priorities(self, indices: np.ndarray, errors: np.ndarray | torch.Tensor) -> None:
-        """Tell the replay the errors (>= 0: |TD error|, or a per-transition loss, as the
-        caller chooses) of the transitions of the latest `sample()`: their priorities
-        become (error + ε)^α (Schaul et al. 2016, Algorithm 1 line 12). Nothing with
-        uniform sampling. Slots written since that sample are left alone (their priority
-        would belong to another transition: ray-project/ray#6534), and so are slots that
-        stopped being valid; where an index repeats, its last error counts."""
-        if self.priorities is None:
-            return
-        if isinstance(errors, torch.Tensor):
-            errors = errors.detach().to("cpu", torch.float64).numpy()
-        errors = np.asarray(errors, dtype=np.float64).reshape(-1)
-        indices = np.asarray(indices, dtype=np.int64).reshape(-1)
-        if errors.shape != indices.shape:
-            raise ValueError(f"{len(errors)} errors for {len(indices)} indices")
-        keep = self.priorities.tree.leaves[indices] > 0.0
-        # The slots written since the draw hold other transitions now.
-        positions, writes = self._sampled_mark
-        streams = self.streams
-        written = np.minimum(np.subtract(streams.writes, writes), streams.segment)
-        if written.any():
-            stream, local = streams.locate(indices)
-            since = (local - np.asarray(positions)[stream]) % streams.segment
-            keep &= since >= written[stream]
-        self.priorities.update(indices[keep], errors[keep])
+    @property
+    def minibatch(self) -> Batch:
+        """The batch `gather` fills and returns, reused by every draw (a sampler may give
+        it importance weights)."""
+        return self._n_step.batch
 
     def gather(self, indices: np.ndarray) -> Batch:
         """The transitions starting at `indices` (len == batch_size): with n_step = 1, the
@@ -450,15 +373,16 @@ class ReplayMemory:
 
     def state_dict(self) -> dict[str, Any]:
         """The small state; the arrays are saved separately (`arrays`). With prioritized
-        sampling, the priorities too (8 bytes a slot), so a resumed run draws the same
+        sampling, the sampler's state too (8 bytes a slot), so a resumed run draws the same
         minibatches."""
         state: dict[str, Any] = {"rng": self.rng.bit_generator.state}
         if self.streams.count == 1:
             state.update(position=self.position, size=self.size, writes=self.writes)
         else:
             state["streams"] = self.streams.state_dict()
-        if self.priorities is not None:
-            state["priorities"] = self.priorities.state_dict()
+        sampler_state = self.sampler.state_dict()
+        if sampler_state is not None:  # the key of the priorities before samplers were parts
+            state["priorities"] = sampler_state
         return state
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
@@ -467,12 +391,7 @@ class ReplayMemory:
         else:
             self.streams.load_state_dict({name: [state[key]] for name, key in STREAM_KEYS.items()})
         self.rng.bit_generator.state = state["rng"]
-        if self.priorities is not None:
-            if "priorities" in state:
-                self.priorities.load_state_dict(state["priorities"])
-            else:
-                self._rebuild_priorities()
-        self._sampled_mark = self.streams.mark()
+        self.sampler.load_state_dict(state.get("priorities"))
 
 
 STREAM_KEYS = {"positions": "position", "sizes": "size", "writes": "writes"}  # one stream

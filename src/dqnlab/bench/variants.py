@@ -60,9 +60,7 @@ def _fill(replay: ReplayMemory, rng: np.random.Generator) -> None:
 
 
 def _sample(replay: ReplayMemory, config: Config) -> Any:
-    if config.replay_sampling == "prioritized":
-        return replay.sample(importance_exponent=config.importance_exponent_start)
-    return replay.sample()
+    return replay.sample(config.replay_start_steps)  # prioritized replay's beta at its start
 
 
 def _median_us(action: Any, repeats: int) -> float:
@@ -126,9 +124,7 @@ def measure_variants(
 
         def sample_and_tell(replay: ReplayMemory = replay, config: Config = config) -> None:
             batch = _sample(replay, config)
-            if config.replay_sampling == "prioritized":
-                assert batch.indices is not None
-                replay.update_priorities(batch.indices, np.abs(batch.rewards) + 0.5)
+            replay.sampler.tell(batch, np.abs(batch.rewards) + 0.5)  # uniform: nothing
 
         figures[f"{preset}_sample_us"] = _median_us(sample_and_tell, 1000)
         batch = _sample(replay, config)

@@ -151,8 +151,9 @@ class Config:
     )
     replay_sampling: str = _setting(
         "uniform",
-        "uniform, or prioritized (Schaul et al. 2016, proportional: P(i) ~ (|error| + "
-        "priority_epsilon)^priority_exponent, importance weights (N P(i))^-beta / batch max)",
+        "uniform, prioritized (Schaul et al. 2016, proportional: P(i) ~ (|error| + "
+        "priority_epsilon)^priority_exponent, importance weights (N P(i))^-beta / batch max), "
+        "or module:Class, a sampler of your own (docs/own-variant.md, A sampler)",
     )
     priority_exponent: float = _setting(0.6, "Prioritized replay's alpha")
     priority_epsilon: float = _setting(1e-6, "Added to |error| so that no priority is zero")

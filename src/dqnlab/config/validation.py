@@ -31,7 +31,6 @@ CHOICES: dict[str, tuple[str, ...]] = {
     "logger": ("tensorboard", "tensorboard+wandb"),
     "target": ("max", "double"),
     "distributional": ("none", "c51"),
-    "replay_sampling": ("uniform", "prioritized"),
     "concurrency": ("none", "actor-learner"),
     "periodic_eval": ("inline", "background"),
     "final_eval_network": ("best", "last"),
@@ -43,6 +42,7 @@ USER_PARTS: dict[str, tuple[str, ...]] = {
     "head": ("auto",),
     "policy": ("epsilon_greedy",),
     "augmentation": ("none", "random_shift"),
+    "replay_sampling": ("uniform", "prioritized"),
 }
 
 

@@ -30,8 +30,8 @@ import torch
 from dqnlab.algorithm.agent import Agent, build_agent, epsilon_at
 from dqnlab.algorithm.compression import expected_frame_bytes
 from dqnlab.algorithm.heldout import HeldOutSet, HeldOutStatistics
-from dqnlab.algorithm.losses import importance_exponent_at
 from dqnlab.algorithm.replay import FrameHistory, ReplayMemory, check_memory
+from dqnlab.algorithm.samplers import build_sampler
 from dqnlab.config import Config, derive_seeds
 from dqnlab.envs import Environment, make_env
 from dqnlab.errors import DqnlabError, ResourceError
@@ -129,9 +129,7 @@ class TrainingState:
             expected_frame_bytes=expected_frame_bytes(config.replay_compression, config.env),
             n_step=config.n_step,
             discount=config.discount,
-            sampling=config.replay_sampling,
-            priority_exponent=config.priority_exponent,
-            priority_epsilon=config.priority_epsilon,
+            sampler=build_sampler(config),
             streams=count,
         )
         if self.replay.streams.count != count:
@@ -261,17 +259,10 @@ class TrainingState:
             )
         if step > config.replay_start_steps and step % config.update_period_steps == 0:
             sampling = perf_counter()
-            prioritized = config.replay_sampling == "prioritized"
-            batch = (
-                self.replay.sample(importance_exponent=importance_exponent_at(step, config))
-                if prioritized
-                else self.replay.sample()
-            )
+            batch = self.replay.sample(step)
             sampled = perf_counter()
             loss, priorities = self.agent.update(batch)
-            if prioritized:
-                assert batch.indices is not None and priorities is not None  # Agent checks
-                self.replay.update_priorities(batch.indices, priorities)
+            self.replay.sampler.tell(batch, priorities)
             if self.check_every_update and not torch.isfinite(loss):
                 raise diverged("the loss", f"at step {step}")
             self.loss_sum += loss
