@@ -21,11 +21,13 @@ the sum tree's non-zero leaves are exactly the slots a transition can start from
 from __future__ import annotations
 
 from collections.abc import Callable
+from functools import partial
 from typing import Any
 
 import numpy as np
 import torch
 
+from dqnlab.algorithm.losses import importance_exponent_at
 from dqnlab.algorithm.minibatch import Batch
 from dqnlab.algorithm.prioritized import ProportionalPriorities, importance_weights
 from dqnlab.config import Config
@@ -79,19 +81,17 @@ class PrioritizedSampler:
     ) -> None:
         """The run's α, ε and β schedule from `config`; the keywords, where given, instead
         (β a constant or a function of the step)."""
-        from dqnlab.algorithm.losses import importance_exponent_at
-
         settings = config or Config()
         self.exponent = (
             settings.priority_exponent if priority_exponent is None else priority_exponent
         )
         self.epsilon = settings.priority_epsilon if priority_epsilon is None else priority_epsilon
         if importance_exponent is None:
-            self.beta: Callable[[int], float] = lambda step: importance_exponent_at(step, settings)
+            self.beta: Callable[[int], float] = partial(_scheduled_beta, config=settings)
         elif callable(importance_exponent):
             self.beta = importance_exponent
         else:
-            self.beta = lambda step, beta=float(importance_exponent): beta
+            self.beta = partial(_constant_beta, beta=float(importance_exponent))
         self.replay: ReplayMemory | None = None
         self.priorities: ProportionalPriorities | None = None
 
@@ -221,6 +221,14 @@ def needs_priorities(config: Config) -> bool:
 
     return bool(getattr(load_object("replay_sampling", config.replay_sampling),
                         "NEEDS_PRIORITIES", False))  # fmt: skip
+
+
+def _scheduled_beta(step: int, config: Config) -> float:
+    return importance_exponent_at(step, config)
+
+
+def _constant_beta(step: int, beta: float) -> float:
+    return beta
 
 
 def _bound(value: Any) -> Any:
