@@ -49,6 +49,24 @@ USER_PARTS: dict[str, tuple[str, ...]] = {
 def validate(config: Config) -> None:
     """Every check of one setting, and of settings that cannot go together: one-line
     ConfigErrors naming the setting."""
+    _validate_names(config)
+    _validate_ranges(config)
+    _validate_combinations(config)
+    _validate_parts(config)
+    _validate_part_settings(config)
+    _validate_env_arguments(config)
+    _validate_periodic_eval(config)
+    # W&B would refuse such a project name, but only once the run has started.
+    project = config.wandb_project
+    if not 0 < len(project) <= 128 or any(c in project for c in WANDB_PROJECT_FORBIDDEN):
+        raise ConfigError(
+            f"wandb_project = {project!r} must be 1 to 128 characters, none of "
+            f"{' '.join(WANDB_PROJECT_FORBIDDEN)}"
+        )
+
+
+def _validate_names(config: Config) -> None:
+    """Settings that take one of a few names, or a user's part."""
     for name, choices in CHOICES.items():
         value = getattr(config, name)
         if value not in choices:
@@ -59,6 +77,10 @@ def validate(config: Config) -> None:
             raise ConfigError(
                 f"{name} = {value!r} is not one of: {', '.join(choices)}, or module:Name"
             )
+
+
+def _validate_ranges(config: Config) -> None:
+    """Numbers that must be positive, zero or more, or in [0, 1]."""
     positive = (
         "n_step", "noisy_sigma0", "action_repeat_frames", "screen_size", "history_length",
         "replay_capacity", "batch_size", "update_period_steps", "target_update_steps",
@@ -78,13 +100,6 @@ def validate(config: Config) -> None:
     for name in non_negative:
         if getattr(config, name) < 0:
             raise ConfigError(f"{name} = {getattr(config, name)} must be zero or more")
-    per_env = config.replay_capacity // config.num_envs
-    if config.num_envs > 1 and per_env < config.history_length + config.n_step + 1:
-        raise ConfigError(
-            f"num_envs = {config.num_envs} leaves {per_env} replay slots per environment "
-            f"(replay_capacity // num_envs); one transition needs "
-            f"{config.history_length + config.n_step + 1}"
-        )
     unit_interval = (
         "importance_exponent_start", "sticky_action_probability", "discount", "epsilon_start",
         "epsilon_end", "eval_epsilon",
@@ -94,6 +109,19 @@ def validate(config: Config) -> None:
             raise ConfigError(f"{name} = {getattr(config, name)} must be between 0 and 1")
     if not 0.0 <= config.rmsprop_decay < 1.0:
         raise ConfigError(f"rmsprop_decay = {config.rmsprop_decay} must be in [0, 1)")
+    if any(width <= 0 for width in config.mlp_hidden_sizes):
+        raise ConfigError(f"mlp_hidden_sizes = {list(config.mlp_hidden_sizes)} must be positive")
+
+
+def _validate_combinations(config: Config) -> None:
+    """Settings that cannot go together."""
+    per_env = config.replay_capacity // config.num_envs
+    if config.num_envs > 1 and per_env < config.history_length + config.n_step + 1:
+        raise ConfigError(
+            f"num_envs = {config.num_envs} leaves {per_env} replay slots per environment "
+            f"(replay_capacity // num_envs); one transition needs "
+            f"{config.history_length + config.n_step + 1}"
+        )
     if config.batch_size > config.replay_capacity:
         raise ConfigError(
             f"batch_size = {config.batch_size} exceeds replay_capacity = {config.replay_capacity}"
@@ -114,19 +142,6 @@ def validate(config: Config) -> None:
             f"update_graph = {config.update_graph!r} captures the update while the actor's "
             'thread would run on the same GPU: with concurrency = "actor-learner" leave '
             'update_graph = "off"'
-        )
-    _validate_parts(config)
-    _validate_part_settings(config)
-    _validate_env_arguments(config)
-    _validate_periodic_eval(config)
-    if any(width <= 0 for width in config.mlp_hidden_sizes):
-        raise ConfigError(f"mlp_hidden_sizes = {list(config.mlp_hidden_sizes)} must be positive")
-    # W&B would refuse such a project name, but only once the run has started.
-    project = config.wandb_project
-    if not 0 < len(project) <= 128 or any(c in project for c in WANDB_PROJECT_FORBIDDEN):
-        raise ConfigError(
-            f"wandb_project = {project!r} must be 1 to 128 characters, none of "
-            f"{' '.join(WANDB_PROJECT_FORBIDDEN)}"
         )
 
 
