@@ -175,7 +175,7 @@ LONG_FUNCTIONS = {
     "analysis/report/aggregate.py::score_matrices": 87, "cli/sweeps.py::sweep": 86,
     "analysis/report/curves.py::curve_figure": 85, "algorithm/agent.py::__init__": 84,
     "cli/results.py::evaluate": 82,
-    "run/state.py::__init__": 78, "bench/vector.py::measure_num_envs": 72,
+    "bench/vector.py::measure_num_envs": 72,
     "analysis/inspection/qvalues.py::compare_networks": 71, "run/lockstep.py::play_games": 69,
     "cli/results.py::report": 68, "bench/cleanrl.py::run_cleanrl_dqn": 65,
     "envs/atari.py::__init__": 64, "analysis/video.py::record_games": 63,

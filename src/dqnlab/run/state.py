@@ -111,36 +111,9 @@ class TrainingState:
             config, training=False, seed=seeds[3], max_episode_frames=config.eval_max_episode_frames
         )
         self.agent = build_agent(config, self.env, device, seeds[4])
-        on_device = (
-            replay_device(config, device, self.env.observation_shape, self.env.observation_dtype)
-            if replay is None
-            else replay.device
-        )
-        self.replay = replay or ReplayMemory(
-            config.replay_capacity,
-            self.env.observation_shape,
-            self.env.observation_dtype,
-            config.history_length,
-            config.batch_size,
-            seeds[5],
-            device=on_device,
-            pin_memory=device.type == "cuda" and on_device is None,
-            compression=config.replay_compression,
-            expected_frame_bytes=expected_frame_bytes(config.replay_compression, config.env),
-            n_step=config.n_step,
-            discount=config.discount,
-            sampler=build_sampler(config),
-            streams=count,
-        )
+        self.replay = replay or self._build_replay(device, seeds[5])
         if self.replay.streams.count != count:
             raise ValueError(f"a replay of {self.replay.streams.count} streams for {count} envs")
-        if replay is None and config.replay_compression != "none" and not self.replay.compressed:
-            print(
-                f"dqnlab: replay_compression = {config.replay_compression} is for image "
-                f"observations; {config.env}'s are vectors {self.env.observation_shape}, "
-                "stored uncompressed",
-                file=sys.stderr,
-            )
         # The environments' histories, side by side: the batch the agent acts on.
         self.stacked = np.zeros(
             (count, config.history_length, *self.env.observation_shape),
@@ -168,6 +141,36 @@ class TrainingState:
         self.heldout_rng = np.random.default_rng(seeds[6])
         for history, env in zip(self.histories, self.envs, strict=True):
             history.reset(env.reset())
+
+    def _build_replay(self, device: torch.device, seed: int) -> ReplayMemory:
+        """The configured replay memory: a stream per environment, its frames also on the
+        device where `replay_storage` puts them there, the run's sampler."""
+        config, env = self.config, self.env
+        on_device = replay_device(config, device, env.observation_shape, env.observation_dtype)
+        replay = ReplayMemory(
+            config.replay_capacity,
+            env.observation_shape,
+            env.observation_dtype,
+            config.history_length,
+            config.batch_size,
+            seed,
+            device=on_device,
+            pin_memory=device.type == "cuda" and on_device is None,
+            compression=config.replay_compression,
+            expected_frame_bytes=expected_frame_bytes(config.replay_compression, config.env),
+            n_step=config.n_step,
+            discount=config.discount,
+            sampler=build_sampler(config),
+            streams=config.num_envs,
+        )
+        if config.replay_compression != "none" and not replay.compressed:
+            print(
+                f"dqnlab: replay_compression = {config.replay_compression} is for image "
+                f"observations; {config.env}'s are vectors {env.observation_shape}, "
+                "stored uncompressed",
+                file=sys.stderr,
+            )
+        return replay
 
     @property
     def frames(self) -> int:
