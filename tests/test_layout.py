@@ -173,7 +173,7 @@ LONG_FUNCTIONS = {
     "algorithm/replay.py::__init__": 92, "run/checkpoints.py::save": 96,
     "analysis/report/write.py::build_report": 94, "bench/variants.py::measure_variants": 86,
     "analysis/report/aggregate.py::score_matrices": 87, "cli/sweeps.py::sweep": 86,
-    "analysis/report/curves.py::curve_figure": 85, "algorithm/agent.py::__init__": 84,
+    "analysis/report/curves.py::curve_figure": 85,
     "cli/results.py::evaluate": 82,
     "bench/vector.py::measure_num_envs": 72,
     "analysis/inspection/qvalues.py::compare_networks": 71, "run/lockstep.py::play_games": 69,

@@ -92,15 +92,7 @@ class Agent:
         self.num_actions = num_actions
         self.online = network.to(device)
         self.target = copy.deepcopy(self.online).requires_grad_(False)
-        self.optimizer = build_optimizer(
-            config.optimizer,
-            self.online.parameters(),
-            learning_rate=config.learning_rate,
-            rmsprop_decay=config.rmsprop_decay,
-            rmsprop_epsilon=config.rmsprop_epsilon,
-            adam_epsilon=config.adam_epsilon,
-            capturable=update_graph == "cuda",
-        )
+        self.optimizer = self._build_optimizer(capturable=update_graph == "cuda")
         self.loss = build_loss(config)
         self.policy = build_policy(config, num_actions)
         self.rng = np.random.default_rng(seed)
@@ -118,24 +110,44 @@ class Agent:
         self.observation_layout = observation_layout
         self.needs_priorities = needs_priorities(config)
         self._check_priorities()
-        # The augmentation part draws from a generator of its own, saved with the agent.
+        self._build_drawing_parts(seed)
+        self._build_update(compile_update, update_graph)
+
+    def _build_optimizer(self, capturable: bool) -> torch.optim.Optimizer:
+        config = self.config
+        return build_optimizer(
+            config.optimizer,
+            self.online.parameters(),
+            learning_rate=config.learning_rate,
+            rmsprop_decay=config.rmsprop_decay,
+            rmsprop_epsilon=config.rmsprop_epsilon,
+            adam_epsilon=config.adam_epsilon,
+            capturable=capturable,
+        )
+
+    def _build_drawing_parts(self, seed: int) -> None:
+        """The augmentation part, with a generator of its own, and a generator for each part
+        that draws random numbers (`dqnlab.parts.RandomPart`); all saved with the agent."""
         is_image = self.input_shape is not None and is_image_observation(
             self.input_shape[1:], np.dtype(self.observation_dtype or np.float32)
         )
-        self.augmentation = build_augmentation(config, is_image)
-        self.augmentation_generator = torch.Generator(device=device)
+        self.augmentation = build_augmentation(self.config, is_image)
+        self.augmentation_generator = torch.Generator(device=self.device)
         self.augmentation_generator.manual_seed(derive_seeds(seed, 1)[0])
-        # Parts that draw random numbers (`dqnlab.parts.RandomPart`): a generator each.
         self.part_generators = attach_generators(
             random_parts({"online": self.online, "target": self.target, "loss": self.loss}),
-            device,
+            self.device,
             seed,
         )
+
+    def _build_update(self, compile_update: bool, update_graph: str) -> None:
+        """The update as it runs: eager, compiled (`compile_update`), or replayed as a CUDA
+        graph (`update_graph`), its inputs staged into buffers that stay put."""
         self._optimizer_step: Callable[[], object] = self.optimizer.step
         if compile_update:
             self._loss_and_backward = torch.compile(self._loss_and_backward)  # type: ignore[method-assign]
             self._optimizer_step = torch.compile(self.optimizer.step)
-        self._staging = HostToDevice(device)
+        self._staging = HostToDevice(self.device)
         self._graph = (
             CapturedUpdate(self._update_step, self._staging.owns)
             if update_graph == "cuda"
