@@ -24,7 +24,7 @@ from dqnlab.algorithm.losses import (
     project_onto_support,
 )
 from dqnlab.algorithm.replay import Batch
-from dqnlab.config import resolve_config
+from dqnlab.config import Config, resolve_config
 from dqnlab.errors import ConfigError
 
 NATURE = resolve_config("nature", env="pong")
@@ -289,30 +289,29 @@ def test_a_users_loss_part_is_built_from_its_import_path(monkeypatch) -> None:
         assert "\n" not in str(error.value) and path in str(error.value)
 
 
-def test_prioritized_replay_refuses_a_loss_part_without_priorities_before_the_run(
-    monkeypatch,
-) -> None:
+@pytest.fixture
+def prioritized_half_loss(monkeypatch: pytest.MonkeyPatch) -> Config:
+    """Prioritized replay with a user's loss part that gives no priorities."""
     module = types.ModuleType("user_parts_2")
     module.HalfLoss = HalfLoss  # type: ignore[attr-defined]
     monkeypatch.setitem(sys.modules, "user_parts_2", module)
-    config = dataclasses.replace(
+    return dataclasses.replace(
         NATURE, loss="user_parts_2:HalfLoss", replay_sampling="prioritized", history_length=1
     )
+
+
+def test_prioritized_replay_refuses_a_loss_part_without_priorities_before_the_run(
+    prioritized_half_loss: Config,
+) -> None:
     with pytest.raises(ConfigError, match="gives no priorities, which replay_sampling"):
-        Agent(Linear1([1.0, 2.0]), 2, config, torch.device("cpu"), seed=0,
+        Agent(Linear1([1.0, 2.0]), 2, prioritized_half_loss, torch.device("cpu"), seed=0,
               input_shape=(1, 1), observation_dtype=np.dtype(np.float32))  # fmt: skip
 
 
 def test_an_agent_built_without_its_input_shape_refuses_at_the_first_update(
-    monkeypatch,
+    prioritized_half_loss: Config,
 ) -> None:
-    module = types.ModuleType("user_parts_3")
-    module.HalfLoss = HalfLoss  # type: ignore[attr-defined]
-    monkeypatch.setitem(sys.modules, "user_parts_3", module)
-    config = dataclasses.replace(
-        NATURE, loss="user_parts_3:HalfLoss", replay_sampling="prioritized", history_length=1
-    )
-    agent = Agent(Linear1([1.0, 2.0]), 2, config, torch.device("cpu"), seed=0)
+    agent = Agent(Linear1([1.0, 2.0]), 2, prioritized_half_loss, torch.device("cpu"), seed=0)
     with pytest.raises(ConfigError, match="gives no priorities, which replay_sampling") as error:
         agent.update(_vector_batch())
     assert "\n" not in str(error.value)

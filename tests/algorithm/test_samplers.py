@@ -4,14 +4,22 @@ check the loss gives them; a wrong name is one line."""
 
 from __future__ import annotations
 
+import gc
 import sys
 import types
+import weakref
 
 import numpy as np
 import pytest
 import torch
 
-from dqnlab.algorithm.samplers import UniformSampler, build_sampler, needs_priorities
+from dqnlab.algorithm.replay import ReplayMemory
+from dqnlab.algorithm.samplers import (
+    PrioritizedSampler,
+    UniformSampler,
+    build_sampler,
+    needs_priorities,
+)
 from dqnlab.config import resolve_config
 from dqnlab.errors import ConfigError
 from dqnlab.run.state import TrainingState
@@ -59,7 +67,7 @@ def test_a_users_sampler_draws_every_minibatch_and_hears_writes_and_priorities(
     assert needs_priorities(config)
     state = TrainingState(config, torch.device("cpu"))
     sampler = state.replay.sampler
-    assert isinstance(sampler, NewestFirst) and sampler.replay is state.replay
+    assert isinstance(sampler, NewestFirst) and sampler.replay.size == state.replay.size == 0
     for _ in range(300):
         state.advance()
     assert len(sampler.written_slots) == state.replay.writes
@@ -86,3 +94,17 @@ def test_a_sampler_without_the_interface_is_one_line(monkeypatch: pytest.MonkeyP
     with pytest.raises(ConfigError, match="has no bind, written, tell, state_dict") as error:
         build_sampler(config)
     assert "\n" not in str(error.value)
+
+
+@pytest.mark.parametrize("sampler", [UniformSampler, PrioritizedSampler])
+def test_a_replay_is_freed_as_soon_as_it_is_dropped(sampler) -> None:  # noqa: ANN001
+    """The sampler holds its replay weakly: no cycle keeps a replay's memory until the
+    garbage collector's next pass."""
+    gc.disable()
+    try:
+        replay = ReplayMemory(100, (2, 2), np.uint8, 4, 8, 0, sampler=sampler())
+        dropped = weakref.ref(replay)
+        del replay
+        assert dropped() is None
+    finally:
+        gc.enable()

@@ -11,16 +11,13 @@ from pathlib import Path
 import pytest
 import torch
 
-from dqnlab.algorithm.replay import ReplayMemory
-from dqnlab.config import config_fingerprint, resolve_config
-from dqnlab.run.checkpoints import CheckpointStore
+from dqnlab.config import resolve_config
 from dqnlab.run.determinism import resume_warning
-from dqnlab.run.rundir import load_run_config, prepare_run_dir
+from dqnlab.run.rundir import prepare_run_dir
 from dqnlab.run.train import train
-from tests.run.test_resume import _frame_layout
+from tests.run.test_resume import assert_identical, final_state
 
 CUDA = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
-SKIPPED_KEYS = ("wall", "seconds", "time")  # wall-clock figures differ between any two runs
 
 
 def _config(total_steps: int):
@@ -40,38 +37,13 @@ def _train(run: Path, total_steps: int, resume: bool = False) -> None:
           resume=resume)  # fmt: skip
 
 
-def final_state(run: Path, total_steps: int = 300) -> tuple[dict, dict]:
-    """The checkpoint at `total_steps` (a resumed run's config.toml keeps its first
-    budget) and its replay arrays."""
-    config = load_run_config(run)
-    replay = ReplayMemory(config.replay_capacity, *_frame_layout(config), 4, 32, 0)
-    loaded = CheckpointStore(run).latest(config_fingerprint(config), into=replay.arrays)
-    assert loaded is not None and loaded.step == total_steps
-    return loaded.state, replay.arrays
-
-
-def _differing(one: dict, two: dict, path: str = "") -> list[str]:
-    if isinstance(one, dict):
-        return [name for key in one if not any(skip in str(key) for skip in SKIPPED_KEYS)
-                for name in _differing(one[key], two[key], f"{path}.{key}")]  # fmt: skip
-    if isinstance(one, list | tuple):
-        return [name for i, (a, b) in enumerate(zip(one, two, strict=True))
-                for name in _differing(a, b, f"{path}[{i}]")]  # fmt: skip
-    if isinstance(one, torch.Tensor):
-        return [] if torch.equal(one.cpu(), two.cpu()) else [path]
-    return [] if one == two else [path]
-
-
 @CUDA
 def test_two_runs_from_one_seed_are_bit_identical_on_cuda(tmp_path: Path) -> None:
     _train(tmp_path / "a", 300)
     _train(tmp_path / "b", 300)
-    (state_a, replay_a), (state_b, replay_b) = (
-        final_state(tmp_path / "a"),
-        final_state(tmp_path / "b"),
-    )
-    assert _differing(state_a["learner"], state_b["learner"]) == []
-    assert all((replay_a[name] == replay_b[name]).all() for name in replay_a)
+    (state_a, replay_a), (state_b, replay_b) = (final_state(tmp_path / name) for name in "ab")
+    assert_identical(state_a["learner"], state_b["learner"], "learner")
+    assert_identical(replay_a, replay_b, "replay")
 
 
 @CUDA
@@ -79,9 +51,11 @@ def test_a_resumed_cuda_run_ends_as_the_uninterrupted_one(tmp_path: Path) -> Non
     _train(tmp_path / "whole", 300)
     _train(tmp_path / "parts", 200)
     _train(tmp_path / "parts", 300, resume=True)
-    whole, parts = final_state(tmp_path / "whole"), final_state(tmp_path / "parts")
-    assert _differing(whole[0]["learner"], parts[0]["learner"]) == []
-    assert all((whole[1][name] == parts[1][name]).all() for name in whole[1])
+    (state_a, replay_a), (state_b, replay_b) = (
+        final_state(tmp_path / "whole"), final_state(tmp_path / "parts", total_steps=300)
+    )  # fmt: skip
+    assert_identical(state_a["learner"], state_b["learner"], "learner")
+    assert_identical(replay_a, replay_b, "replay")
 
 
 def test_a_resume_without_deterministic_on_cuda_says_it_will_not_be_exact() -> None:

@@ -108,13 +108,15 @@ def wait_for_checkpoint(run: Path, process: subprocess.Popen[str], after: int) -
     return False
 
 
-def final_state(run: Path) -> tuple[dict, dict[str, np.ndarray]]:
+def final_state(run: Path, total_steps: int | None = None) -> tuple[dict, dict[str, np.ndarray]]:
+    """The newest checkpoint, at `total_steps` (the run's config's by default: a run resumed
+    with a new budget keeps its first one there), and its replay arrays."""
     config = load_run_config(run)
     learner_replay = ReplayMemory(
         config.replay_capacity, *_frame_layout(config), config.history_length, 32, 0
     )
     loaded = CheckpointStore(run).latest(config_fingerprint(config), into=learner_replay.arrays)
-    assert loaded is not None and loaded.step == config.total_steps
+    assert loaded is not None and loaded.step == (total_steps or config.total_steps)
     return loaded.state, learner_replay.arrays
 
 

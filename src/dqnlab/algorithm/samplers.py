@@ -20,6 +20,7 @@ the sum tree's non-zero leaves are exactly the slots a transition can start from
 
 from __future__ import annotations
 
+import weakref
 from collections.abc import Callable
 from functools import partial
 from typing import Any
@@ -31,6 +32,8 @@ from dqnlab.algorithm.losses import importance_exponent_at
 from dqnlab.algorithm.minibatch import Batch
 from dqnlab.algorithm.prioritized import ProportionalPriorities, importance_weights
 from dqnlab.config import Config
+from dqnlab.errors import ConfigError
+from dqnlab.parts import load_object, load_part
 
 # The replay memory a sampler is bound to (`replay.ReplayMemory`, which imports this
 # module: named here by its role, not imported).
@@ -46,7 +49,7 @@ class UniformSampler:
         self.replay: ReplayMemory | None = None
 
     def bind(self, replay: ReplayMemory) -> None:
-        self.replay = replay
+        self.replay = _weak(replay)
 
     def written(self, slot: int) -> None:
         """Nothing to keep per slot."""
@@ -87,7 +90,7 @@ class PrioritizedSampler:
         )
         self.epsilon = settings.priority_epsilon if priority_epsilon is None else priority_epsilon
         if importance_exponent is None:
-            self.beta: Callable[[int], float] = partial(_scheduled_beta, config=settings)
+            self.beta: Callable[[int], float] = partial(importance_exponent_at, config=settings)
         elif callable(importance_exponent):
             self.beta = importance_exponent
         else:
@@ -97,7 +100,7 @@ class PrioritizedSampler:
 
     def bind(self, replay: ReplayMemory) -> None:
         """The sum tree over the replay's slots, and the buffers of a draw."""
-        self.replay = replay
+        self.replay = _weak(replay)
         self.priorities = ProportionalPriorities(replay.capacity, self.exponent, self.epsilon)
         size = replay.batch_size
         self._uniforms = np.zeros(size)
@@ -190,7 +193,7 @@ class PrioritizedSampler:
         self._sampled_mark = replay.streams.mark()
 
 
-Sampler = UniformSampler | PrioritizedSampler  # or a user's class with the same methods
+# What a sampler part must have (docs/own-variant.md, A sampler).
 SAMPLER_METHODS = ("bind", "written", "sample", "tell", "state_dict", "load_state_dict")
 
 
@@ -200,9 +203,6 @@ def build_sampler(config: Config) -> Any:
         return UniformSampler(config)
     if config.replay_sampling == "prioritized":
         return PrioritizedSampler(config)
-    from dqnlab.errors import ConfigError
-    from dqnlab.parts import load_part
-
     sampler = load_part("replay_sampling", config.replay_sampling, config)
     missing = [name for name in SAMPLER_METHODS if not callable(getattr(sampler, name, None))]
     if missing:
@@ -217,18 +217,19 @@ def needs_priorities(config: Config) -> bool:
     """Whether the run's sampler asks the loss part for priorities."""
     if config.replay_sampling in ("uniform", "prioritized"):
         return config.replay_sampling == "prioritized"
-    from dqnlab.parts import load_object
-
-    return bool(getattr(load_object("replay_sampling", config.replay_sampling),
-                        "NEEDS_PRIORITIES", False))  # fmt: skip
-
-
-def _scheduled_beta(step: int, config: Config) -> float:
-    return importance_exponent_at(step, config)
+    sampler = load_object("replay_sampling", config.replay_sampling)
+    return bool(getattr(sampler, "NEEDS_PRIORITIES", False))
 
 
 def _constant_beta(step: int, beta: float) -> float:
     return beta
+
+
+def _weak(replay: ReplayMemory) -> ReplayMemory:
+    """The replay as a weak reference: it holds its sampler, and a strong reference back
+    would make the pair a cycle, kept (a 7 GB replay with it) until the garbage collector's
+    next pass instead of freed when the run drops it."""
+    return weakref.proxy(replay)
 
 
 def _bound(value: Any) -> Any:
