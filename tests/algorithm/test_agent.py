@@ -154,6 +154,7 @@ def _random_batches(count: int, seed: int, shared_window: bool = False) -> list[
                 actions=rng.integers(0, 6, size=32).astype(np.int64),
                 rewards=rng.choice([-1.0, 0.0, 1.0], size=32).astype(np.float32),
                 terminals=(rng.random(32) < 0.2).astype(np.float32),
+                discounts=np.full(32, 0.99, dtype=np.float32),
                 next_observations=window[:, 1:],
                 window=window if shared_window else None,
             )

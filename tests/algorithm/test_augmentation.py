@@ -90,7 +90,7 @@ def test_the_update_augments_observations_and_next_observations_independently() 
     batch = Batch(
         observations=None, next_observations=None, window=window,
         actions=np.zeros(32, np.int64), rewards=np.zeros(32, np.float32),
-        terminals=np.zeros(32, np.float32), discounts=None, weights=None, indices=None,
+        terminals=np.zeros(32, np.float32), discounts=np.full(32, 0.99, np.float32),
     )  # fmt: skip
     agent.update(batch)
     observations, shifted, next_observations, next_shifted = seen

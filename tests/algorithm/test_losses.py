@@ -223,6 +223,7 @@ def _vector_batch(weights: np.ndarray | None = None) -> Batch:
         actions=np.array([0, 1, 1]),
         rewards=np.array([0.5, 1.0, -1.0], dtype=np.float32),
         terminals=np.array([0.0, 0.0, 1.0], dtype=np.float32),
+        discounts=np.full(3, 0.99, dtype=np.float32),
         next_observations=np.array([[1.0], [2.0], [1.0]], dtype=np.float32),
         weights=weights,
     )

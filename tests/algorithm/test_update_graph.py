@@ -42,11 +42,7 @@ def _previous_update(agent: Agent, batch: Batch) -> tuple[torch.Tensor, torch.Te
         sample_noise(agent.online, agent.noise_generator)
         sample_noise(agent.target, agent.noise_generator)
     rewards = torch.from_numpy(batch.rewards)
-    discounts = (
-        torch.full_like(rewards, agent.config.discount)
-        if batch.discounts is None
-        else torch.from_numpy(batch.discounts)
-    )
+    discounts = torch.from_numpy(batch.discounts)
     output = agent.loss(
         agent.online,
         agent.target,

@@ -11,6 +11,7 @@ generator for every action in training and for both networks at every update.
 from __future__ import annotations
 
 import copy
+import dataclasses
 import functools
 from collections.abc import Callable, Sequence
 from typing import Any
@@ -22,7 +23,8 @@ from torch import nn
 from dqnlab.algorithm.augmentation import build_augmentation
 from dqnlab.algorithm.encoders import torch_dtype
 from dqnlab.algorithm.heads import has_noise, sample_noise
-from dqnlab.algorithm.losses import Transitions, build_loss
+from dqnlab.algorithm.losses import build_loss
+from dqnlab.algorithm.minibatch import Batch, Minibatch, Transitions
 from dqnlab.algorithm.networks import build_q_network, recorded_network_name
 from dqnlab.algorithm.optim import build_optimizer
 from dqnlab.algorithm.part_generators import (
@@ -32,7 +34,6 @@ from dqnlab.algorithm.part_generators import (
     restore_generators,
 )
 from dqnlab.algorithm.policies import build_policy
-from dqnlab.algorithm.replay import Batch
 from dqnlab.algorithm.samplers import needs_priorities
 from dqnlab.algorithm.update_graph import CapturedUpdate, HostToDevice
 from dqnlab.config import Config, derive_seeds
@@ -149,9 +150,7 @@ class Agent:
             self._optimizer_step = torch.compile(self.optimizer.step)
         self._staging = HostToDevice(self.device)
         self._graph = (
-            CapturedUpdate(self._update_step, self._staging.owns)
-            if update_graph == "cuda"
-            else None
+            CapturedUpdate(self._graph_step, self._staging.owns) if update_graph == "cuda" else None
         )
 
     def _check_priorities(self) -> None:
@@ -234,87 +233,70 @@ class Agent:
         """One gradient step on a sampled minibatch; returns the loss and the priorities
         the loss part gives (for prioritized replay), neither synchronised (with
         update_graph, the graph's own tensors: read them before the next update)."""
-        device = self.device
         # Both networks in train mode for every update, whatever ran before (acting and the
         # held-out statistics use eval mode): a part whose forward depends on the mode
         # (noisy layers, a user's dropout or random draws) then computes the same after a
         # resume as in a run left alone.
         self.online.train()
         self.target.train()
-        if batch.window is not None:  # the shared frames cross to the device once
-            frames, next_frames = _on_device(batch.window, device), None
-        else:
-            frames = _on_device(batch.observations, device)
-            next_frames = _on_device(batch.next_observations, device)
-        # One copy that does not wait for the device (on a GPU), into buffers that stay put.
-        actions, rewards, terminals, discounts, weights = self._staging.upload(
-            (batch.actions, batch.rewards, batch.terminals, batch.discounts, batch.weights)
-        )
-        assert actions is not None and rewards is not None and terminals is not None
+        transitions = self._on_device(batch)
         if self.noisy:  # fresh noise for each network (Fortunato et al. 2018, Algorithm 1)
             # Drawn in place into the layers' buffers, outside a graph: each update's own.
             sample_noise(self.online, self.noise_generator)
             sample_noise(self.target, self.noise_generator)
-        step = self._update_step if self._graph is None else self._graph
-        loss, priorities = step(
-            frames, next_frames, actions, rewards, terminals, discounts, weights
-        )
+        if self._graph is None:
+            loss, priorities = self._update_step(transitions)
+        else:
+            loss, priorities = self._graph(*transitions.update_inputs())
         if priorities is None and self.needs_priorities:
             raise self._no_priorities()  # an agent built without its input shape checks here
         self.updates += 1
         return loss, priorities
 
-    def _update_step(
-        self,
-        frames: torch.Tensor,
-        next_frames: torch.Tensor | None,
-        actions: torch.Tensor,
-        rewards: torch.Tensor,
-        terminals: torch.Tensor,
-        discounts: torch.Tensor | None,
-        weights: torch.Tensor | None,
-    ) -> tuple[torch.Tensor, torch.Tensor | None]:
-        """The update on device tensors, all of it on the device (what a graph captures).
-        `next_frames` None: `frames` is the window of history + 1 frames of both states."""
-        if next_frames is None:
-            history = frames.shape[1] - 1
-            observations, next_observations = frames[:, :history], frames[:, 1:]
+    def _on_device(self, batch: Batch) -> Transitions:
+        """The minibatch on the training device: the frames moved (the shared window
+        once, a no-op for frames already there), the small arrays in one copy that does not
+        wait for the device (on a GPU), into buffers that stay put (`HostToDevice`)."""
+        if batch.window is not None:  # the shared frames cross to the device once
+            frames, next_frames = _on_device(batch.window, self.device), None
         else:
-            observations, next_observations = frames, next_frames
+            frames = _on_device(batch.observations, self.device)
+            next_frames = _on_device(batch.next_observations, self.device)
+        small = self._staging.upload(
+            (batch.actions, batch.rewards, batch.terminals, batch.discounts, batch.weights)
+        )
+        return Minibatch.from_update_inputs((frames, next_frames, *small), batch.indices)
+
+    def _graph_step(self, *inputs: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """The update on the tensors a CUDA graph keeps (`Minibatch.update_inputs`)."""
+        return self._update_step(Minibatch.from_update_inputs(inputs))
+
+    def _update_step(self, batch: Transitions) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """The update on a minibatch on the device, all of it on the device (what a graph
+        captures)."""
         if self.augmentation is not None:  # each drawn on its own (augmentation.py)
-            observations = self.augmentation(observations, self.augmentation_generator)
-            next_observations = self.augmentation(next_observations, self.augmentation_generator)
+            batch = dataclasses.replace(
+                batch,
+                observations=self.augmentation(batch.observations, self.augmentation_generator),
+                next_observations=self.augmentation(
+                    batch.next_observations, self.augmentation_generator
+                ),
+                window=None,
+            )
         # Zeroed in place, not set to None: fresh gradients every update made the C
         # allocator return memory and fault it back in, which cost more than the two
         # passes over the gradients that set_to_none=True saves (and a graph needs them
         # to stay where they are).
         self.optimizer.zero_grad(set_to_none=False)
-        loss, priorities = self._loss_and_backward(
-            observations, actions, rewards, terminals, discounts, next_observations, weights
-        )
+        loss, priorities = self._loss_and_backward(batch)
         if self.config.max_gradient_norm > 0:
             nn.utils.clip_grad_norm_(self.online.parameters(), self.config.max_gradient_norm)
         self._optimizer_step()
         return loss, priorities
 
-    def _loss_and_backward(
-        self,
-        observations: torch.Tensor,
-        actions: torch.Tensor,
-        rewards: torch.Tensor,
-        terminals: torch.Tensor,
-        discounts: torch.Tensor | None,
-        next_observations: torch.Tensor,
-        weights: torch.Tensor | None,
-    ) -> tuple[torch.Tensor, torch.Tensor | None]:
-        if discounts is None:  # one-step targets: the discount itself
-            discounts = torch.full_like(rewards, self.config.discount)
-        output = self.loss(
-            self.online,
-            self.target,
-            Transitions(observations, actions, rewards, terminals, discounts, next_observations),
-        )
-        losses = output.losses if weights is None else output.losses * weights
+    def _loss_and_backward(self, batch: Transitions) -> tuple[torch.Tensor, torch.Tensor | None]:
+        output = self.loss(self.online, self.target, batch)
+        losses = output.losses if batch.weights is None else output.losses * batch.weights
         # Summed as the Lua code accumulates gradients over the minibatch (its RMSProp
         # epsilon assumes that scale), or averaged (loss_reduction).
         loss = losses.sum() if self.config.loss_reduction == "sum" else losses.mean()

@@ -2,8 +2,9 @@
 transition and the priorities prioritized replay is told back.
 
 A loss part is a class built as `Class(config)` and called as
-`part(online, target, batch) -> LossOutput`. The agent does the rest of the update the
-same way for every part: it weights the per-transition losses by the importance weights
+`part(online, target, batch) -> LossOutput`, `batch` the minibatch on the training device
+(`minibatch.Transitions`). The agent does the rest of the update the same way for every
+part: it weights the per-transition losses by the importance weights
 (prioritized replay), sums or averages them (`loss_reduction`), back-propagates, clips
 the gradient norm (`max_gradient_norm`) and steps the optimizer. The shipped parts:
 
@@ -26,23 +27,10 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from dqnlab.algorithm.minibatch import Transitions
 from dqnlab.config import Config
 from dqnlab.errors import ConfigError
 from dqnlab.parts import load_part
-
-
-@dataclass(frozen=True)
-class Transitions:
-    """A minibatch on the training device. With n-step returns (`n_step`), `rewards` are
-    the discounted sums of up to n rewards and `discounts` the discount of the bootstrap
-    (discount ** steps summed); with n_step = 1 they are r and the discount."""
-
-    observations: torch.Tensor  # (batch, history, *observation_shape), stored dtype
-    actions: torch.Tensor  # (batch,) int64
-    rewards: torch.Tensor  # (batch,) float32, clipped as stored
-    terminals: torch.Tensor  # (batch,) float32, 1.0 where the window ended in a terminal
-    discounts: torch.Tensor  # (batch,) float32
-    next_observations: torch.Tensor  # (batch, history, *observation_shape): the bootstrap
 
 
 @dataclass(frozen=True)

@@ -1,6 +1,7 @@
-"""The minibatches a replay memory returns (`Batch`) and the buffers they are gathered
-into: allocated once, filled by every draw, on the host (page-locked for a GPU if asked)
-or on the device that keeps a copy of the frames.
+"""The minibatch (`Minibatch`: `Batch` as the replay draws it, `Transitions` on the
+training device) and the buffers the replay gathers it into: allocated once, filled by
+every draw, on the host (page-locked for a GPU if asked) or on the device that keeps a
+copy of the frames.
 
 A network input is the last `history_length` observations of one episode, stacked when a
 transition is drawn; frames from before the episode's start are zeros, as at an episode
@@ -14,37 +15,77 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
+from typing import Any, Generic, TypeVar
 
 import numpy as np
 import torch
 
 from dqnlab.algorithm.compression import CompressedFrames
 
+Array = TypeVar("Array", np.ndarray, torch.Tensor)
+
 
 @dataclass
-class Batch:
-    """Views into the memory's reusable sampling buffers: valid until the next sample.
+class Minibatch(Generic[Array]):
+    """The one minibatch type, from the replay to the loss part. The replay draws it as
+    NumPy arrays (`Batch`: views into its reusable buffers, valid until the next draw; the
+    frames already tensors on the device when the replay keeps its frames there); the
+    agent sends it to the training device in one step (`Agent.update`) as tensors
+    (`Transitions`), which is what a loss part reads, and tells the sampler its priorities
+    by `indices`.
 
-    The frames are NumPy arrays, or tensors already on the device when the memory keeps
-    its frames there. A transition starts at slot t and sums m <= n_step steps
-    (`dqnlab.algorithm.nstep`); its TD target is
-    rewards + discounts · (1 - terminals) · value(next_observations)."""
+    A transition starts at slot t and sums m <= n_step steps (`dqnlab.algorithm.nstep`);
+    its TD target is rewards + discounts · (1 - terminals) · value(next_observations)."""
 
-    observations: np.ndarray | torch.Tensor  # (batch, history, *frame_shape), o_t
-    actions: np.ndarray  # (batch,) int64
-    rewards: np.ndarray  # (batch,) float32: Σ_{k<m} γ^k r_{t+k}, rewards clipped as stored
-    terminals: np.ndarray  # (batch,) float32, 1.0 where the window ended in a terminal state
-    next_observations: np.ndarray | torch.Tensor  # (batch, history, *frame_shape), o_{t+m}
-    # (batch, history + 1, *frame_shape) when both are views of it (one-step transitions:
-    # observations the first `history` frames, next_observations the last): a device
-    # copies it once, not twice. None for n-step transitions.
-    window: np.ndarray | torch.Tensor | None = None
-    # (batch,) int64: the slots the transitions start at, what the sampler is told.
-    indices: np.ndarray | None = None
-    # (batch,) float32: γ^m; None (a batch built elsewhere): γ, one step.
-    discounts: np.ndarray | None = None
+    observations: Array | torch.Tensor  # (batch, history, *frame_shape), o_t, stored dtype
+    actions: Array  # (batch,) int64
+    rewards: Array  # (batch,) float32: Σ_{k<m} γ^k r_{t+k}, rewards clipped as stored
+    terminals: Array  # (batch,) float32, 1.0 where the window ended in a terminal state
+    discounts: Array  # (batch,) float32: γ^m, the discount of the bootstrap
+    next_observations: Array | torch.Tensor  # (batch, history, *frame_shape), o_{t+m}
     # (batch,) float32: importance weights of prioritized sampling; None: uniform, all 1.
-    weights: np.ndarray | None = None
+    weights: Array | None = None
+    # (batch,) int64, on the host: the slots the transitions start at, what the sampler
+    # is told (`samplers.py`); None for a minibatch that came from no replay.
+    indices: np.ndarray | None = None
+    # (batch, history + 1, *frame_shape) when both states are views of it (one-step
+    # transitions: observations the first `history` frames, next_observations the last):
+    # a device copies it once, not twice. None for n-step transitions.
+    window: Array | torch.Tensor | None = None
+
+    def update_inputs(self) -> tuple[torch.Tensor | None, ...]:
+        """The tensors of a minibatch on the device as the update reads them, in a fixed
+        order (what a CUDA graph keeps buffers for: `update_graph.CapturedUpdate`): the
+        frames (the window alone where both states are views of it, then None), actions,
+        rewards, terminals, discounts and weights. `from_update_inputs` inverts it."""
+        assert isinstance(self.observations, torch.Tensor)  # a `Transitions`
+        inputs: tuple[Any, ...] = (
+            (self.window, None) if self.window is not None
+            else (self.observations, self.next_observations)
+        )  # fmt: skip
+        return (*inputs, self.actions, self.rewards, self.terminals, self.discounts, self.weights)
+
+    @staticmethod
+    def from_update_inputs(
+        inputs: tuple[torch.Tensor | None, ...], indices: np.ndarray | None = None
+    ) -> Transitions:
+        """The minibatch whose `update_inputs` are `inputs` (views of them, no copy)."""
+        frames, next_frames, actions, rewards, terminals, discounts, weights = inputs
+        assert frames is not None and actions is not None and rewards is not None
+        assert terminals is not None and discounts is not None
+        window = None
+        if next_frames is None:  # one window of history + 1 frames holds both states
+            window, history = frames, frames.shape[1] - 1
+            frames, next_frames = window[:, :history], window[:, 1:]
+        return Transitions(
+            frames, actions, rewards, terminals, discounts, next_frames, weights, indices, window
+        )
+
+
+# The replay's draw: NumPy arrays (the frames possibly tensors on the device).
+Batch = Minibatch[np.ndarray]
+# A minibatch on the training device, as a loss part reads it.
+Transitions = Minibatch[torch.Tensor]
 
 
 @dataclass
