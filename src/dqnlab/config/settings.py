@@ -250,7 +250,15 @@ class Config:
         "On a CUDA device, PyTorch's deterministic algorithms (cuDNN, cuBLAS): a run repeats "
         "bit for bit and a resumed run continues exactly as an uninterrupted one; false is "
         "faster and neither holds (a resume then says so). No effect on the CPU, whose "
-        "operations are deterministic already",
+        "operations repeat bit for bit at a given thread count (`threads`)",
+    )
+    threads: int = _setting(
+        0,
+        "PyTorch threads of a training process (torch.set_num_threads); 0: PyTorch's "
+        "default, one per core (or OMP_NUM_THREADS). The CPU's arithmetic depends on the "
+        "count, so a resumed run takes the count it trained with unless this says "
+        "otherwise (then it warns that it will not continue bit for bit). 1 for each of "
+        "two trainings at once on two cores",
     )
     replay_storage: str = _setting(
         "auto",

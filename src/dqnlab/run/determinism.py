@@ -1,10 +1,17 @@
-"""Deterministic arithmetic on a CUDA device (the `deterministic` setting).
+"""Deterministic arithmetic: on a CUDA device the `deterministic` setting, on the CPU the
+thread count (`threads`).
 
-On the CPU, PyTorch's operations give the same bits from the same inputs. On a GPU, some
-do not by default: cuDNN's convolution gradients and cuBLAS's split reductions add in an
-order that varies from call to call. Measured on an H200 (2026-12-04): two `der` runs on
-Pong from the same seed differed in every weight after 2,500 steps. With PyTorch's
-deterministic algorithms they repeat bit for bit, and so does a resumed run.
+On the CPU, PyTorch's operations give the same bits from the same inputs at a given
+number of threads, but not across counts: on a 2-core AMD EPYC (2026-12-04), four updates
+with two threads gave other bits than with one for nature, double, classic, drq_epsilon
+and iqn among others (c51, dueling, der and rainbow the same). So a run records its count
+in every checkpoint and a resumed run takes it back.
+
+On a GPU, some operations do not repeat by default: cuDNN's convolution gradients and
+cuBLAS's split reductions add in an order that varies from call to call. Measured on an
+H200 (2026-12-04): two `der` runs on Pong from the same seed differed in every weight
+after 2,500 steps. With PyTorch's deterministic algorithms they repeat bit for bit, and so
+does a resumed run.
 """
 
 from __future__ import annotations
@@ -41,4 +48,50 @@ def resume_warning(config: Config, device: torch.device) -> str | None:
     return (
         "dqnlab: warning: deterministic = false on CUDA: the resumed run continues from its "
         "checkpoint, but not bit for bit as it would have without the stop"
+    )
+
+
+def apply_threads(config: Config) -> int:
+    """Set this process's PyTorch threads from `threads` (0: leave PyTorch's default);
+    returns the count the run trains with."""
+    if config.threads > 0:
+        torch.set_num_threads(config.threads)
+    return torch.get_num_threads()
+
+
+def resume_threads(config: Config, device: torch.device, trained_with: int | None) -> str | None:
+    """Take back the thread count a checkpoint was written with (`trained_with`; None in
+    checkpoints from before it was recorded), so that the CPU's arithmetic continues as
+    it was; returns what the resume must say, if anything. A count the user set explicitly
+    wins, with a warning that the run will not continue bit for bit."""
+    now = torch.get_num_threads()
+    if device.type != "cpu" or trained_with is None or trained_with == now:
+        return None
+    if config.threads == 0:
+        torch.set_num_threads(trained_with)
+        return (
+            f"dqnlab: resuming with the {trained_with} PyTorch thread(s) the run trained with "
+            f"(this process had {now}): the CPU's arithmetic depends on the count"
+        )
+    return (
+        f"dqnlab: warning: threads = {now} where the run trained with {trained_with}: the "
+        "resumed run continues from its checkpoint, but not bit for bit (the CPU's "
+        "arithmetic depends on the thread count)"
+    )
+
+
+def busy_cores_warning(threads: int, device: torch.device) -> str | None:
+    """A warning when other processes already keep the cores busy and this training would
+    add several threads to them: two trainings at once with two threads each on two cores
+    ran tens of times slower than with one each (measured while building `num_envs`)."""
+    if device.type != "cpu" or threads < 2 or not hasattr(os, "getloadavg"):
+        return None
+    load, cores = os.getloadavg()[0], len(os.sched_getaffinity(0))
+    if load < cores - 0.5:
+        return None
+    return (
+        f"dqnlab: warning: the load average is {load:.1f} on {cores} cores before this run "
+        f"starts: other processes keep them busy, and {threads} PyTorch threads competing "
+        "with them can run many times slower; with another training beside it, give each "
+        "--set threads=1"
     )

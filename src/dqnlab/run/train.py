@@ -39,7 +39,12 @@ from dqnlab.run import rundir
 from dqnlab.run.background_eval import BackgroundEvaluations, NetworkState
 from dqnlab.run.checkpoints import CheckpointStore
 from dqnlab.run.concurrent import training_state
-from dqnlab.run.determinism import resume_warning
+from dqnlab.run.determinism import (
+    apply_threads,
+    busy_cores_warning,
+    resume_threads,
+    resume_warning,
+)
 from dqnlab.run.lease import RunLease
 from dqnlab.run.logs import RunLogger
 from dqnlab.run.play import EvaluationResult
@@ -146,6 +151,10 @@ class TrainingLoop:
             import_wandb()  # without the extra, one line now, before anything is built
         self.run_dir = run_dir
         self.lease = lease
+        self.threads = apply_threads(config)  # before anything computes
+        warning = busy_cores_warning(self.threads, device)
+        if warning and not resume:
+            tqdm.write(warning, file=sys.stderr)
         self.state = training_state(config, device)
         # The network `auto` chose, written out where it is one of the newer kinds.
         if resume:
@@ -158,7 +167,7 @@ class TrainingLoop:
         self.progress = RunProgress()
         pending: list[dict[str, Any]] = []  # evaluations a checkpoint left in flight
         if resume:
-            pending = self._restore()
+            pending = self._restore(device)
             warning = resume_warning(config, device)
             if warning:
                 tqdm.write(warning, file=sys.stderr)
@@ -355,6 +364,7 @@ class TrainingLoop:
         saved: dict[str, Any] = {
             "learner": state.state_dict(),
             "run": dataclasses.asdict(self.progress),
+            "threads": self.threads,  # the CPU's arithmetic depends on it: a resume keeps it
         }
         if self.background is not None:  # played again by a resumed run
             saved["pending_evaluations"] = self.background.state_dict()
@@ -372,9 +382,9 @@ class TrainingLoop:
         self.saved_mark = replay.mark()
         self.saved_time = time.monotonic()
 
-    def _restore(self) -> list[dict[str, Any]]:
-        """Carry on from the newest complete checkpoint, if there is one; returns the
-        background evaluations it left pending."""
+    def _restore(self, device: torch.device) -> list[dict[str, Any]]:
+        """Carry on from the newest complete checkpoint, if there is one, with the thread
+        count it was written with; returns the background evaluations it left pending."""
         replay = self.state.replay
         # Loaded into host memory whatever the device: the state's load_state_dict copies
         # each tensor where it belongs (weights and optimizer state onto the device; random
@@ -382,6 +392,10 @@ class TrainingLoop:
         loaded = self.store.latest(self.fingerprint, into=replay.arrays, map_location="cpu")
         replay.upload()
         if loaded is not None:
+            said = resume_threads(self.config, device, loaded.state.get("threads"))
+            if said:
+                tqdm.write(said, file=sys.stderr)
+            self.threads = torch.get_num_threads()
             self.state.load_state_dict(loaded.state["learner"])
             self.progress = RunProgress(**loaded.state["run"])
             return list(loaded.state.get("pending_evaluations", []))
