@@ -27,9 +27,9 @@ train: install
 
 # The test suite CI runs: lint, format and type checks, then every test not marked slow.
 test: install-test
-	$(BIN)/ruff check src tests docs examples
-	$(BIN)/ruff format --check src tests docs examples
-	$(BIN)/mypy src
+	$(BIN)/ruff check src tests docs examples scripts
+	$(BIN)/ruff format --check src tests docs examples scripts
+	$(BIN)/mypy src scripts
 	$(BIN)/python -m pytest -q
 
 # Slow tests (minutes): the classic preset solves CartPole-v1 for 3 seeds, and so does each
@@ -39,15 +39,15 @@ test-slow: install-test
 	$(BIN)/python -m pytest -q -m slow
 
 lint: install-test
-	$(BIN)/ruff check src tests docs examples
-	$(BIN)/ruff format --check src tests docs examples
+	$(BIN)/ruff check src tests docs examples scripts
+	$(BIN)/ruff format --check src tests docs examples scripts
 
 format: install-test
-	$(BIN)/ruff format src tests docs examples
-	$(BIN)/ruff check --fix src tests docs examples
+	$(BIN)/ruff format src tests docs examples scripts
+	$(BIN)/ruff check --fix src tests docs examples scripts
 
 typecheck: install-test
-	$(BIN)/mypy src
+	$(BIN)/mypy src scripts
 
 # The documentation site, into site/: the settings and command references are generated from
 # the code (docs/hooks.py); --strict fails on any warning (a broken link or anchor, a page
@@ -62,7 +62,7 @@ docs-serve: install-docs
 # The GPU path's figures into bench-gpu.json (under 8 minutes on one H100/H200; see
 # docs/benchmark.md). ARGS="--device cpu --quick" runs it on CPU in seconds.
 bench-gpu: install
-	$(BIN)/python -m dqnlab.bench.gpu --json bench-gpu.json $(ARGS)
+	$(BIN)/dqnlab bench gpu --json bench-gpu.json $(ARGS)
 
 # Issue 22's CPU table in one command, into bench-table.json (about 15 minutes on 2 cores):
 # training frames/s with num_envs 1, 2, 4, 8, each sequential and with an actor thread,
@@ -71,7 +71,7 @@ bench-gpu: install
 CLEANRL ?=
 bench-table: install
 	$(BIN)/python -m pip install --quiet -e ".[bench]"
-	$(BIN)/dqnlab bench --num-envs 1,2,4,8 --concurrency none,actor-learner --peers \
+	$(BIN)/dqnlab bench envs --num-envs 1,2,4,8 --concurrency none,actor-learner --peers \
 		--checkpoint --steps 1000 --replay-capacity 100000 --json bench-table.json \
 		$(if $(CLEANRL),--cleanrl $(CLEANRL)) $(ARGS)
 

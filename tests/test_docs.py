@@ -10,6 +10,7 @@ import os
 import re
 import subprocess
 import sys
+from collections.abc import Iterator
 from html.parser import HTMLParser
 from pathlib import Path
 from typing import Any
@@ -60,15 +61,16 @@ def test_the_settings_page_lists_every_field_of_config_once_and_nothing_else(sit
 
 
 def test_the_commands_page_lists_every_command_and_its_options(site: Path) -> None:
+    """Every command, a group's subcommands in its place (`dqnlab bench gpu`: `bench-gpu`)."""
     group, ctx = _cli()
-    commands = {name: group.get_command(ctx, name) for name in group.list_commands(ctx)}
-    visible = {name: command for name, command in commands.items() if not command.hidden}
+    commands = list(_leaf_commands(group, ctx))
     page = site / "commands" / "index.html"
-    assert sorted(_ids_of_class(page, COMMAND_CLASS)) == sorted(visible)
+    ids = [path.replace(" ", "-") for path, _, _ in commands]
+    assert sorted(_ids_of_class(page, COMMAND_CLASS)) == sorted(ids)
     text = page.read_text()
-    for name, command in visible.items():
-        for option in _option_names(command, ctx):
-            assert f"<code>{option}</code>" in text, f"{name} {option}"
+    for path, command, parent in commands:
+        for option in _option_names(command, parent):
+            assert f"<code>{option}</code>" in text, f"{path} {option}"
 
 
 def test_readme_is_a_small_front_page() -> None:
@@ -99,18 +101,21 @@ def test_the_readme_command_list_names_only_real_commands_and_options() -> None:
     group, ctx = _cli()
     blocks = re.findall(r"^```[\w-]*\n(.*?)^```", README.read_text(), re.DOTALL | re.MULTILINE)
     block = next(b for b in blocks if b.startswith("dqnlab train"))
+    commands = {path: (command, parent) for path, command, parent in _leaf_commands(group, ctx)}
     options: dict[str, set[str]] = {}
-    command = ""
+    path = ""
     for line in block.splitlines():
         if line.startswith("dqnlab "):
-            command = line.split()[1]
-            options[command] = set()
-        options[command] |= set(re.findall(r"--[a-z][a-z0-9-]*", line.split("#")[0]))
+            words = line.split()  # `dqnlab COMMAND`, or `dqnlab GROUP SUBCOMMAND`
+            path = words[1] if words[1] in commands else " ".join(words[1:3])
+            assert path in commands, f"README: no command dqnlab {path}"
+            options.setdefault(path, set())
+        options[path] |= set(re.findall(r"--[a-z][a-z0-9-]*", line.split("#")[0]))
     visible = [n for n in group.list_commands(ctx) if not group.get_command(ctx, n).hidden]
-    assert sorted(options) == sorted(visible)
-    for name, named in options.items():
-        unknown = named - set(_option_names(group.get_command(ctx, name), ctx))
-        assert not unknown, f"README: dqnlab {name} has no option {sorted(unknown)}"
+    assert sorted({path.split()[0] for path in options}) == sorted(visible)
+    for path, named in options.items():
+        unknown = named - set(_option_names(*commands[path]))
+        assert not unknown, f"README: dqnlab {path} has no option {sorted(unknown)}"
 
 
 def _cli() -> tuple[Any, Any]:
@@ -121,6 +126,21 @@ def _cli() -> tuple[Any, Any]:
 
     group = typer.main.get_command(app)
     return group, group.make_context("dqnlab", [], resilient_parsing=True)
+
+
+def _leaf_commands(group: Any, ctx: Any, prefix: str = "") -> Iterator[tuple[str, Any, Any]]:
+    """(name after `dqnlab`, command, its group's context) of every visible command, a
+    group's subcommands in its place, as docs/hooks.py lists them."""
+    for name in group.list_commands(ctx):
+        command = group.get_command(ctx, name)
+        path = f"{prefix} {name}".strip()
+        if command.hidden:
+            continue
+        if hasattr(command, "list_commands"):
+            sub_ctx = command.make_context(name, [], parent=ctx, resilient_parsing=True)
+            yield from _leaf_commands(command, sub_ctx, path)
+        else:
+            yield path, command, ctx
 
 
 def _option_names(command: Any, ctx: Any) -> list[str]:

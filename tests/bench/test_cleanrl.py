@@ -294,12 +294,14 @@ def test_a_failing_script_is_one_line(checkout: Path, venv: Path) -> None:
 def test_the_command_line_names_the_option(
     capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch, tmp_path: Path
 ) -> None:
-    status, err = dqnlab_main(capsys, monkeypatch, "bench", "--cleanrl-venv", str(tmp_path))
+    status, err = dqnlab_main(
+        capsys, monkeypatch, "bench", "throughput", "--cleanrl-venv", str(tmp_path)
+    )
     assert status == 2 and err.strip() == (
         "dqnlab: error: --cleanrl-venv is for --cleanrl DIR: give the CleanRL checkout"
     )
     status, err = dqnlab_main(
-        capsys, monkeypatch, "bench", "--cleanrl", str(tmp_path / "nowhere")
+        capsys, monkeypatch, "bench", "envs", "--cleanrl", str(tmp_path / "nowhere")
     )  # fmt: skip
     assert status == 2 and len(err.strip().splitlines()) == 1
     assert "--cleanrl " in err and "no cleanrl/dqn_atari.py there" in err

@@ -1,12 +1,11 @@
-"""The compressed replay's figures against the raw replay's on a game's frames, and the
-per-game scan of compressed frame sizes (not their speed)."""
+"""The compressed replay's figures against the raw replay's on a game's frames (not their
+speed); the per-game scan is scripts/compression_scan.py's (tests/scripts)."""
 
 from __future__ import annotations
 
-import pytest
 import torch
 
-from dqnlab.bench.compression import measure_compression, scan
+from dqnlab.bench.compression import measure_compression
 
 
 def test_compression_figures_compare_the_two_replays_on_the_games_frames(tmp_path) -> None:
@@ -27,12 +26,3 @@ def test_compression_figures_compare_the_two_replays_on_the_games_frames(tmp_pat
         assert figures[f"compression_train_frames_per_second_{name}"] > 0
     assert figures["compression_sample_us"] > 0 and figures["compression_sample_us_raw"] > 0
     assert list(tmp_path.iterdir()) == []  # the checkpoints were removed
-
-
-def test_the_compression_scan_measures_whole_chunks_of_each_game() -> None:
-    rows = scan(["pong", "breakout"], steps=150, chunk_slots=100)
-    assert [row["game"] for row in rows] == ["pong", "breakout"]
-    for row in rows:
-        assert row["frames_measured"] >= 200  # two whole chunks (and the slot after them)
-        assert row["ratio"] == pytest.approx(84 * 84 / row["lz4_bytes_per_frame"], rel=0.01)
-        assert row["ratio"] > 4.7

@@ -1,6 +1,6 @@
-"""The FLOP count of the networks and of the update against hand computations and against
-PyTorch's own count of what `Agent.update` runs; the matrix multiply's figures (not their
-speed)."""
+"""The update's FLOPs as `FlopCounterMode` counts them (`flops.update_flops`) against hand
+computations (the formula of `flops.py`'s docstring); the matrix multiply's figures (not
+their speed)."""
 
 from __future__ import annotations
 
@@ -9,15 +9,10 @@ import pytest
 import torch
 from torch.utils.flop_counter import FlopCounterMode
 
-from dqnlab.algorithm.agent import agent_for_input
+from dqnlab.algorithm.agent import Agent, agent_for_input
 from dqnlab.algorithm.networks import MLP, NatureCNN
 from dqnlab.algorithm.replay import ReplayMemory
-from dqnlab.bench.flops import (
-    agent_network_flops,
-    count_network_flops,
-    measure_matmul,
-    update_flop_figures,
-)
+from dqnlab.bench.flops import measure_matmul, update_flop_figures, update_flops
 from dqnlab.config import resolve_config
 
 # The Nature CNN on 4 stacked 84x84 frames, 2 x MACs per input, worked out by hand:
@@ -28,71 +23,80 @@ NATURE_LAYERS = {
     "head.0": 2 * (64 * 7 * 7) * 512,
     "head.2": 2 * 512 * 4,  # 4 actions (Breakout)
 }
+NATURE_FORWARD = 18_690_048  # their sum: about 18.7 MFLOP per input
 
 
-def test_the_nature_cnn_counted_layer_by_layer() -> None:
-    flops = count_network_flops(NatureCNN((4, 84, 84), 4), (4, 84, 84), torch.uint8)
-    assert {layer.name: layer.forward for layer in flops.layers} == NATURE_LAYERS
-    assert flops.forward == 18_690_048  # about 18.7 MFLOP per input
-    # Every layer learns; the first takes the observations, which need no gradient.
-    assert all(layer.weight_gradient for layer in flops.layers)
-    assert [layer.input_gradient for layer in flops.layers] == [False, True, True, True, True]
-    first = NATURE_LAYERS["features.0"]
-    # Per minibatch of 32: target forward + online forward + weight gradients (3 F) and
-    # input gradients (F - first); the double target adds an online forward.
-    assert flops.update(32, "max") == 32 * (4 * 18_690_048 - first) == 2_182_610_944
-    assert flops.update(32, "double") == 32 * (5 * 18_690_048 - first) == 2_780_692_480
-    assert flops.not_counted == ()
+def _forward_flops(network: torch.nn.Module, inputs: torch.Tensor) -> FlopCounterMode:
+    with FlopCounterMode(display=False) as counter:
+        network(inputs)
+    return counter
 
 
-def test_a_small_mlp_counted_by_hand() -> None:
-    network = MLP((2, 3), 2, (8, 8))  # 6 inputs (history 2 x 3) -> 8 -> 8 -> 2 actions
-    training = network.training
-    network.eval()
-    flops = count_network_flops(network, (2, 3), torch.float32)
-    assert [layer.forward for layer in flops.layers] == [2 * 6 * 8, 2 * 8 * 8, 2 * 8 * 2]
-    assert flops.forward == 256
-    assert flops.backward == 2 * 256 - 2 * 6 * 8
-    assert flops.update(5) == 5 * (4 * 256 - 96)
-    assert not network.training and training  # its mode is put back
+def _agent(preset: str, overrides: dict[str, object], actions: int) -> Agent:
+    config = resolve_config(preset, overrides, replay_capacity=200)
+    names = [str(action) for action in range(actions)]
+    return agent_for_input(
+        config, (4, 84, 84), np.dtype(np.uint8), names, torch.device("cpu"), 0
+    )  # fmt: skip
 
 
-@pytest.mark.parametrize(
-    "overrides",
-    [
-        {},  # nature
-        {"target": "double"},
-        {"target": "double", "dueling": True, "noisy": True},  # Rainbow's head without C51
-    ],
-)
-def test_the_count_is_what_the_update_computes(overrides: dict[str, object]) -> None:
-    config = resolve_config("nature", overrides, replay_capacity=200)
-    agent = agent_for_input(
-        config, (4, 84, 84), np.dtype(np.uint8), ["a", "b", "c", "d"], torch.device("cpu"), 0
-    )
+def _replay() -> ReplayMemory:
     replay = ReplayMemory(200, (84, 84), np.uint8, 4, 32, 0)
     frames = np.random.default_rng(0).integers(0, 256, size=(100, 84, 84), dtype=np.uint8)
     for i, frame in enumerate(frames):
         replay.add(frame, i % 4, 1.0, False)
-    with FlopCounterMode(display=False) as counter:
-        agent.update(replay.sample())
-    counted = agent_network_flops(agent).update(32, config.target)
-    assert counted == counter.get_total_flops()
+    return replay
 
 
-def test_c51_leaves_out_only_its_projection() -> None:
-    config = resolve_config("c51", replay_capacity=200)
-    agent = agent_for_input(
-        config, (4, 84, 84), np.dtype(np.uint8), ["a", "b"], torch.device("cpu"), 0
+def test_the_nature_cnn_counted_layer_by_layer() -> None:
+    counter = _forward_flops(
+        NatureCNN((4, 84, 84), 4), torch.zeros((1, 4, 84, 84), dtype=torch.uint8)
     )
-    replay = ReplayMemory(200, (84, 84), np.uint8, 4, 32, 0)
-    for i in range(100):
-        replay.add(np.full((84, 84), i, np.uint8), i % 2, 1.0, False)
-    with FlopCounterMode(display=False) as counter:
-        agent.update(replay.sample())
-    counted = agent_network_flops(agent).update(32, config.target)
+    counts = counter.get_flop_counts()
+    assert {name: sum(counts[f"NatureCNN.{name}"].values()) for name in NATURE_LAYERS} == (
+        NATURE_LAYERS
+    )
+    assert counter.get_total_flops() == NATURE_FORWARD
+
+
+def test_a_small_mlp_counted_by_hand() -> None:
+    network = MLP((2, 3), 2, (8, 8))  # 6 inputs (history 2 x 3) -> 8 -> 8 -> 2 actions
+    counter = _forward_flops(network, torch.zeros((5, 2, 3)))
+    assert counter.get_total_flops() == 5 * (2 * 6 * 8 + 2 * 8 * 8 + 2 * 8 * 2)
+
+
+@pytest.mark.parametrize(
+    ("target", "forwards"),
+    [("max", 2), ("double", 3)],  # the double target's online forward on the next states
+)
+def test_the_nature_update_is_the_formulas(target: str, forwards: int) -> None:
+    """Per minibatch of 32: the forwards, weight gradients (F) and input gradients (F less
+    the first layer's, whose input needs none): 2.18 GFLOP, 2.78 with the double target."""
+    agent = _agent("nature", {"target": target}, 4)
+    first = NATURE_LAYERS["features.0"]
+    expected = 32 * ((forwards + 2) * NATURE_FORWARD - first)
+    assert update_flops(agent, _replay().sample()) == expected
+    assert expected == {"max": 2_182_610_944, "double": 2_780_692_480}[target]
+
+
+def test_dueling_and_noisy_heads_keep_the_formula() -> None:
+    """Rainbow's head without C51: the same passes, the network's own F."""
+    agent = _agent("nature", {"target": "double", "dueling": True, "noisy": True}, 4)
+    agent.online.train()
+    forward = _forward_flops(agent.online, torch.zeros((1, 4, 84, 84), dtype=torch.uint8))
+    first = NATURE_LAYERS["features.0"]
+    expected = 32 * (5 * forward.get_total_flops() - first)
+    assert update_flops(agent, _replay().sample()) == expected
+
+
+def test_c51_adds_its_projection() -> None:
+    agent = _agent("c51", {}, 4)
+    agent.online.train()
+    forward = _forward_flops(agent.online, torch.zeros((1, 4, 84, 84), dtype=torch.uint8))
+    first = NATURE_LAYERS["features.0"]
+    networks = 32 * (4 * forward.get_total_flops() - first)
     # The projection: one (51 x 51) by (51 x 1) product per transition.
-    assert counter.get_total_flops() - counted == 32 * 2 * 51 * 51
+    assert update_flops(agent, _replay().sample()) - networks == 32 * 2 * 51 * 51
 
 
 def test_the_matmul_and_the_update_figures() -> None:

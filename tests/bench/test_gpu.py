@@ -1,5 +1,5 @@
-"""The GPU benchmark script runs end to end on CPU with a tiny budget, and its figures say
-which were skipped for want of CUDA (not their speed)."""
+"""`dqnlab bench gpu` runs end to end on CPU with a tiny budget, and its figures say which
+were skipped for want of CUDA (not their speed)."""
 
 from __future__ import annotations
 
@@ -12,12 +12,17 @@ from typer.testing import CliRunner
 
 from dqnlab.bench import gpu
 from dqnlab.cli import app
+from dqnlab.errors import ConfigError
 
 
-def test_the_script_end_to_end_on_cpu_quick(tmp_path: Path) -> None:
+def test_the_command_end_to_end_on_cpu_quick(tmp_path: Path) -> None:
     path = tmp_path / "bench-gpu.json"
-    assert gpu.main(["--device", "cpu", "--quick", "--json", str(path)]) == 0
+    result = CliRunner().invoke(
+        app, ["bench", "gpu", "--device", "cpu", "--quick", "--json", str(path)]
+    )
+    assert result.exit_code == 0, result.output
     figures = json.loads(path.read_text())
+    assert "update_ms_graph_off" in result.stdout  # the figures are printed too
     assert figures["machine"]["device"] == "cpu" and figures["machine"]["cores"] >= 1
     assert {"torch", "cuda", "cuda_available"} <= set(figures["machine"])
     for name in ("cpu_matches_device", "graph_matches_eager", "update_ms_graph_cuda",
@@ -35,7 +40,7 @@ def test_the_script_end_to_end_on_cpu_quick(tmp_path: Path) -> None:
     assert acting["concurrency"] == "actor-learner" and acting["updates"] > 0
 
 
-def test_the_command_line_writes_the_same_file(tmp_path: Path, monkeypatch) -> None:  # noqa: ANN001
+def test_the_command_line_passes_its_options(tmp_path: Path, monkeypatch) -> None:  # noqa: ANN001
     seen = {}
     monkeypatch.setattr(
         gpu,
@@ -44,12 +49,19 @@ def test_the_command_line_writes_the_same_file(tmp_path: Path, monkeypatch) -> N
     )
     path = tmp_path / "out.json"
     result = CliRunner().invoke(
-        app, ["bench", "--gpu", "--quick", "--device", "cpu", "--json", str(path), "--env", "pong"]
+        app, ["bench", "gpu", "--quick", "--device", "cpu", "--json", str(path), "--env", "pong"]
     )
     assert result.exit_code == 0, result.output
     assert json.loads(path.read_text()) == {}
     assert seen["device"] == torch.device("cpu") and seen["quick"] and seen["env"] == "pong"
-    assert seen["budget_seconds"] == gpu.BUDGET_SECONDS
+    assert seen["budget_seconds"] == gpu.BUDGET_SECONDS and seen["only"] is None
+    result = CliRunner().invoke(
+        app, ["bench", "gpu", "--device", "cpu", "--json", str(path), "--budget", "60",
+              "--only", "update_ms_graph_off,exact_loop_graph_off"],
+    )  # fmt: skip
+    assert result.exit_code == 0, result.output
+    assert seen["budget_seconds"] == 60.0 and not seen["quick"]
+    assert seen["only"] == frozenset({"update_ms_graph_off", "exact_loop_graph_off"})
 
 
 def test_the_budget_skips_the_sections_not_yet_begun(tmp_path: Path) -> None:
@@ -72,5 +84,5 @@ def test_only_the_named_sections_run_and_an_unknown_name_is_refused() -> None:
                                     only=frozenset({"cpu_matches_device"}))  # fmt: skip
     assert figures["cpu_matches_device"] == gpu.NO_CUDA
     assert "exact_loop_graph_off" not in figures
-    with pytest.raises(ValueError, match="unknown bench-gpu section nope; the sections: cpu_m"):
+    with pytest.raises(ConfigError, match="--only: unknown section nope; the sections: cpu_m"):
         gpu.run_gpu_benchmark(torch.device("cpu"), quick=True, only=frozenset({"nope"}))

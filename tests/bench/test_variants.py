@@ -1,4 +1,4 @@
-"""`dqnlab bench --variants`: every variant's figures are produced, the ratios are the ratios
+"""`dqnlab bench variants`: every variant's figures are produced, the ratios are the ratios
 of the figures, and bad lists are refused in one line (not the speeds themselves)."""
 
 from __future__ import annotations

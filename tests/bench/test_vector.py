@@ -1,4 +1,4 @@
-"""`dqnlab bench --num-envs`: one set of figures per number of environments."""
+"""`dqnlab bench envs`: one set of figures per number of environments."""
 
 from __future__ import annotations
 

@@ -19,7 +19,8 @@ def test_the_app_and_entry_point_the_docs_and_pyproject_name() -> None:
     """`dqnlab.cli.app` (the docs' command reference is built from it) lists every command
     in this order, and `dqnlab.cli:main` is the console script's entry point."""
     command = typer.main.get_command(app)
-    assert list(command.commands) == COMMANDS  # type: ignore[attr-defined]
+    context = command.make_context("dqnlab", [], resilient_parsing=True)
+    assert command.list_commands(context) == COMMANDS  # type: ignore[attr-defined]
     pyproject = (Path(__file__).parents[2] / "pyproject.toml").read_text()
     assert 'dqnlab = "dqnlab.cli:main"' in pyproject and callable(main)
 

@@ -45,8 +45,9 @@ MEASURED_FILE = "replay_compression.csv"
 
 @functools.cache
 def measured_frame_bytes() -> dict[str, float]:
-    """Compressed bytes per frame of each Atari game, as `dqnlab bench --compression-scan`
-    measured them (data/replay_compression.csv)."""
+    """Compressed bytes per frame of each Atari game, as the compression scan measured them
+    (data/replay_compression.csv; `python scripts/compression_scan.py`, once
+    `dqnlab bench --compression-scan`)."""
     path = resources.files("dqnlab") / "data" / MEASURED_FILE
     if not path.is_file():
         return {}

@@ -1,5 +1,5 @@
 """What a stop checkpoint of the `nature` preset costs early in a run (`dqnlab bench
---checkpoint`): the seconds and bytes of the checkpoint that Ctrl-C writes after `steps`
+checkpoint`): the seconds and bytes of the checkpoint that Ctrl-C writes after `steps`
 agent steps, with the preset's full-size replay (1M slots), raw and compressed.
 
 Two replays of the preset's capacity, one raw and one LZ4, are filled with the same
@@ -100,7 +100,7 @@ def measure_stop_checkpoint(
     rounds: int = 3,
     scratch_dir: Path | None = None,
 ) -> dict[str, Any]:
-    """The `checkpoint_*` figures of `dqnlab bench --checkpoint` (see the module
+    """The `checkpoint_*` figures of `dqnlab bench checkpoint` (see the module
     docstring): per codec, the median seconds and the bytes of the stop checkpoint, the
     seconds of each round, the seconds to load it and whether it loads the same."""
     device = device or torch.device("cpu")

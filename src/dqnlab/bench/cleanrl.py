@@ -1,5 +1,6 @@
-"""CleanRL's DQN as a peer for `dqnlab bench --cleanrl DIR`: its `cleanrl/dqn_atari.py` run
-from a checkout, unchanged, in a venv of its own with the versions CleanRL's lock pins.
+"""CleanRL's DQN as a peer for `--cleanrl DIR` (`dqnlab bench throughput` and `envs`): its
+`cleanrl/dqn_atari.py` run from a checkout, unchanged, in a venv of its own with the
+versions CleanRL's lock pins.
 
 No current CleanRL is on PyPI, so the script runs from the checkout at DIR with
 `PYTHONPATH=DIR` (for `cleanrl_utils`). The venv is made once, under the user's cache, from
@@ -303,32 +304,8 @@ def run_cleanrl_dqn(
     command = [str(peer.python), "-c", LAUNCHER, str(peer.checkout / SCRIPT), *arguments]
     threads = torch.get_num_threads()
     load_at_start = os.getloadavg()[0]
-    lines: list[tuple[float, str]] = []
-    tail: deque[str] = deque(maxlen=20)
     start = time.perf_counter()
-    # Its TensorBoard files go to runs/ under the working folder: a temporary one.
-    with tempfile.TemporaryDirectory(prefix="dqnlab-cleanrl-") as folder:
-        try:
-            process = subprocess.Popen(
-                command,
-                cwd=folder,
-                env=cleanrl_environment(peer, threads),
-                stdout=subprocess.PIPE,
-                stderr=subprocess.STDOUT,
-                text=True,
-            )
-        except OSError as error:
-            raise DqnlabError(f"--cleanrl-venv: {peer.python} could not start: {error}") from None
-        assert process.stdout is not None
-        for line in process.stdout:
-            lines.append((time.perf_counter(), line.rstrip("\n")))
-            if line.strip():
-                tail.append(line.strip())
-        status = process.wait()
-    if status != 0:
-        raise DqnlabError(
-            f"--cleanrl: {SCRIPT} exited with status {status}: {tail[-1] if tail else 'no output'}"
-        )
+    lines = _timed_output(command, cleanrl_environment(peer, threads), peer.python)
     versions: dict[str, str | None] = next(
         (
             json.loads(line[len(LAUNCHER_PREFIX) :])
@@ -356,6 +333,35 @@ def run_cleanrl_dqn(
             "EpisodicLife, FireReset, ClipReward, Resize 84, GrayScale, FrameStack(4)",
         },
     }
+
+
+def _timed_output(
+    command: list[str], environment: dict[str, str], python: Path
+) -> list[tuple[float, str]]:
+    """Each line the command prints, with the time it arrived; a one-line error with its
+    last line if it fails. It runs in a temporary folder: its TensorBoard files go to
+    runs/ under the working folder."""
+    lines: list[tuple[float, str]] = []
+    tail: deque[str] = deque(maxlen=20)
+    with tempfile.TemporaryDirectory(prefix="dqnlab-cleanrl-") as folder:
+        try:
+            process = subprocess.Popen(
+                command, cwd=folder, env=environment, stdout=subprocess.PIPE,
+                stderr=subprocess.STDOUT, text=True,
+            )  # fmt: skip
+        except OSError as error:
+            raise DqnlabError(f"--cleanrl-venv: {python} could not start: {error}") from None
+        assert process.stdout is not None
+        for line in process.stdout:
+            lines.append((time.perf_counter(), line.rstrip("\n")))
+            if line.strip():
+                tail.append(line.strip())
+        status = process.wait()
+    if status != 0:
+        raise DqnlabError(
+            f"--cleanrl: {SCRIPT} exited with status {status}: {tail[-1] if tail else 'no output'}"
+        )
+    return lines
 
 
 def cleanrl_figures(

@@ -6,17 +6,16 @@ resident bytes per transition and the compression ratio, the time to sample a mi
 the time to compress a chunk (per agent step), training frames/s with each (alternating
 rounds, so that the machine's load falls on both alike), and the bytes and seconds of a
 full-replay checkpoint (optionally of a larger replay repeating the same transitions).
-`scan` measures the compressed size of frames per game, and `write_scan` every Atari-57
-game's into the table the memory check reads (data/replay_compression.csv).
+The compressed size of every Atari-57 game's frames, the table the memory check reads
+(data/replay_compression.csv), was measured once by scripts/compression_scan.py.
 """
 
 from __future__ import annotations
 
-import csv
 import shutil
 import tempfile
 import time
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -102,9 +101,9 @@ def measure_compression(
     scratch_dir: Path | None = None,
     checkpoint_capacity: int = 0,
 ) -> dict[str, Any]:
-    """The `compression_*` figures of `dqnlab bench` (see the module docstring). With
-    `checkpoint_capacity`, the checkpoints are timed on replays of that many slots that
-    repeat the filled ones' transitions (`_cycled`)."""
+    """The `compression_*` figures of `dqnlab bench throughput` (see the module
+    docstring). With `checkpoint_capacity`, the checkpoints are timed on replays of that
+    many slots that repeat the filled ones' transitions (`_cycled`)."""
     config = resolve_config("nature", env=env, seed=seed, replay_capacity=fill_steps)
     shape, dtype = (config.screen_size, config.screen_size), np.dtype(np.uint8)
     raw = ReplayMemory(fill_steps, shape, dtype, config.history_length, config.batch_size, seed)
@@ -113,9 +112,20 @@ def measure_compression(
         compression="lz4",
     )  # fmt: skip
     fill_by_random_play([raw, packed], config, fill_steps, seed)
-    assert isinstance(packed.frames, CompressedFrames)
-    frames = packed.frames
     figures: dict[str, Any] = {"compression_codec": "lz4", "compression_fill_steps": fill_steps}
+    figures.update(_memory_figures(raw, packed, config))
+    figures.update(_checkpoint_figures(raw, packed, checkpoint_capacity, scratch_dir))
+    figures.update(_training_figures(raw, packed, config, device, rounds, train_steps))
+    return figures
+
+
+def _memory_figures(raw: ReplayMemory, packed: ReplayMemory, config: Config) -> dict[str, Any]:
+    """The compressed replay's bytes per transition, measured and projected to 1M slots,
+    the time to compress a chunk, the time to sample from each replay, and whether both
+    give the same minibatches."""
+    assert isinstance(packed.frames, CompressedFrames)
+    frames, fill_steps = packed.frames, packed.capacity
+    figures: dict[str, Any] = {}
     sealed_per_slot = frames.sealed_bytes / max(frames.sealed_slots, 1)
     figures["compression_ratio"] = frames.frame_bytes / sealed_per_slot
     figures["compression_resident_bytes_per_transition"] = packed.resident_bytes / fill_steps
@@ -137,10 +147,18 @@ def measure_compression(
         _window_bytes(raw, indices) == _window_bytes(packed, indices)
         for indices in (raw.sample_indices(config.batch_size) for _ in range(200))
     )
+    return figures
 
+
+def _checkpoint_figures(
+    raw: ReplayMemory, packed: ReplayMemory, checkpoint_capacity: int, scratch_dir: Path | None
+) -> dict[str, Any]:
+    """Bytes and seconds of a checkpoint of each replay (of `checkpoint_capacity` slots
+    repeating them, if given), in a scratch directory removed after, and their ratios."""
+    fill_steps = raw.capacity
     scratch = Path(tempfile.mkdtemp(prefix="dqnlab-bench-", dir=scratch_dir))
     checkpoint_capacity = checkpoint_capacity or fill_steps
-    figures["compression_checkpoint_capacity"] = checkpoint_capacity
+    figures: dict[str, Any] = {"compression_checkpoint_capacity": checkpoint_capacity}
     try:
         for name in ("raw", "lz4"):
             replay = {"raw": raw, "lz4": packed}[name]
@@ -160,9 +178,20 @@ def measure_compression(
         figures["compression_checkpoint_seconds_raw"]
         / figures["compression_checkpoint_seconds_lz4"]
     )
+    return figures
 
-    # Training on each replay, after the replay start and the epsilon anneal, in
-    # alternating rounds.
+
+def _training_figures(
+    raw: ReplayMemory,
+    packed: ReplayMemory,
+    config: Config,
+    device: torch.device,
+    rounds: int,
+    train_steps: int,
+) -> dict[str, Any]:
+    """Training on each replay, after the replay start and the epsilon anneal, in
+    alternating rounds: frames/s, the microseconds of each part of a step, and the
+    chunks' compression against a step's time."""
     trainings = {
         name: TrainingState(config, device, replay=replay)
         for name, replay in (("raw", raw), ("lz4", packed))
@@ -179,8 +208,9 @@ def measure_compression(
             runs[name].append(measure_training(training, train_steps)[0])
             for part in parts:
                 part_seconds[name][part] += training.seconds[part]
-    chunk_us_per_step = 1e6 * frames.chunk_seconds / max(packed.writes, 1)
-    figures["compression_chunk_us_per_step"] = chunk_us_per_step
+    assert isinstance(packed.frames, CompressedFrames)
+    chunk_us_per_step = 1e6 * packed.frames.chunk_seconds / max(packed.writes, 1)
+    figures: dict[str, Any] = {"compression_chunk_us_per_step": chunk_us_per_step}
     figures["compression_chunk_work_fraction_of_step"] = chunk_us_per_step / (
         1e6 * config.action_repeat_frames / float(np.mean(runs["lz4"]))
     )
@@ -202,52 +232,3 @@ def measure_compression(
         - 1.0
     )
     return figures
-
-
-def scan(
-    games: Iterable[str], steps: int, seed: int = 0, chunk_slots: int = CHUNK_SLOTS
-) -> list[dict[str, Any]]:
-    """Per game: the compressed bytes per frame of `steps` frames of random play (whole
-    chunks only; `steps` is rounded up to a whole chunk)."""
-    chunks = -(-steps // chunk_slots)
-    rows = []
-    for game in games:
-        config = resolve_config("nature", env=game, seed=seed)
-        capacity = chunks * chunk_slots
-        replay = ReplayMemory(
-            capacity + 1, (config.screen_size,) * 2, np.uint8, config.history_length, 1, seed,
-            compression="lz4", chunk_slots=chunk_slots,
-        )  # fmt: skip
-        fill_by_random_play([replay], config, capacity, seed)
-        frames = replay.frames
-        assert isinstance(frames, CompressedFrames)
-        per_frame = frames.sealed_bytes / frames.sealed_slots
-        rows.append(
-            {
-                "game": game,
-                "lz4_bytes_per_frame": round(per_frame, 1),
-                "ratio": round(frames.frame_bytes / per_frame, 2),
-                "frames_measured": frames.sealed_slots,
-            }
-        )
-    return rows
-
-
-def write_scan(path: Path, steps: int, echo: Callable[[str], Any] = print) -> None:
-    """`dqnlab bench --compression-scan PATH`: `scan` of every Atari-57 game into the CSV
-    at `path`, under a comment line giving the command, a row written (and echoed) as each
-    game is measured."""
-    from dqnlab.analysis.report.scores import load_reference_scores  # the 57 games
-
-    games = sorted(load_reference_scores())
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with path.open("w", newline="") as handle:
-        handle.write(f"# dqnlab bench --compression-scan {path} --scan-steps {steps}\n")
-        writer = None
-        for row in (scan([game], steps)[0] for game in games):
-            if writer is None:
-                writer = csv.DictWriter(handle, fieldnames=list(row))
-                writer.writeheader()
-            writer.writerow(row)
-            handle.flush()
-            echo(f"{row['game']:24s} {row['lz4_bytes_per_frame']:8.1f} B/frame  x{row['ratio']}")

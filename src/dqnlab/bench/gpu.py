@@ -1,5 +1,5 @@
-"""The GPU path's figures in one run (`make bench-gpu`, `dqnlab bench --gpu`, or
-`python -m dqnlab.bench.gpu`), written to one JSON file (issue 22, part 5).
+"""The GPU path's figures in one run (`dqnlab bench gpu`, `make bench-gpu`), written to one
+JSON file (issue 22, part 5).
 
 Figures: the machine; the update's milliseconds eager and as a CUDA graph
 (`update_graph`); training frames/s of the exact loop (nature preset, frames on the device,
@@ -14,25 +14,23 @@ the same minibatch. Sized to take under 8 minutes on one H100/H200 with 16 cores
 
 from __future__ import annotations
 
-import argparse
 import copy
 import dataclasses
-import json
 import os
-import sys
 import time
 from collections.abc import Callable
 from functools import partial
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
+from torch.utils.benchmark import Timer
 
 from dqnlab.algorithm.agent import Agent
 from dqnlab.algorithm.replay import ReplayMemory
-from dqnlab.bench.measure import machine_figures, measure_training, whole_rounds
+from dqnlab.bench.measure import call_seconds, machine_figures, measure_training, whole_rounds
 from dqnlab.config import Config, resolve_config
+from dqnlab.errors import ConfigError
 from dqnlab.run.concurrent import training_state
 from dqnlab.run.state import TrainingState, replay_device
 
@@ -105,19 +103,19 @@ def run_gpu_benchmark(
     unknown = sorted((only or frozenset()) - {name for name, _ in sections})
     if unknown:
         known = ", ".join(name for name, _ in sections)
-        raise ValueError(f"unknown bench-gpu section {', '.join(unknown)}; the sections: {known}")
+        raise ConfigError(f"--only: unknown section {', '.join(unknown)}; the sections: {known}")
     for name, measure in sections:
         if only is not None and name not in only:
             continue
         if time.perf_counter() - started > budget_seconds:
             figures[name] = "skipped: the time budget was spent"
             continue
-        echo(f"dqnlab bench-gpu: {name} ...")
+        echo(f"dqnlab bench gpu: {name} ...")
         try:
             figures[name] = measure()
         except Exception as error:  # noqa: BLE001 - one section's failure is a figure too
             figures[name] = f"failed: {type(error).__name__}: {error}"
-        echo(f"dqnlab bench-gpu: {name} = {figures[name]}")
+        echo(f"dqnlab bench gpu: {name} = {figures[name]}")
     figures["seconds"] = round(time.perf_counter() - started, 1)
     return figures
 
@@ -182,18 +180,19 @@ def update_ms(
     agent, replay = state.agent, state.replay
     for _ in range(5):  # the graph's warm-up and capture
         agent.update(replay.sample())
-    synchronize(device)
-    start = time.perf_counter()
-    for _ in range(sizes.update_repeats):
-        agent.update(replay.sample())
-    synchronize(device)
-    back_to_back = (time.perf_counter() - start) / sizes.update_repeats
-    waited = []
-    for _ in range(sizes.update_repeats):
-        start = time.perf_counter()
+    # Timer waits for the device before and after the updates, on the update's threads.
+    timer = Timer(
+        "agent.update(replay.sample())",
+        globals={"agent": agent, "replay": replay},
+        num_threads=torch.get_num_threads(),
+    )
+    back_to_back = timer.timeit(sizes.update_repeats).mean
+
+    def update_waited() -> None:
         agent.update(replay.sample())
         synchronize(device)
-        waited.append(time.perf_counter() - start)
+
+    waited = call_seconds(update_waited, sizes.update_repeats)
     state.close()
     return {
         "back_to_back_ms": round(back_to_back * 1e3, 4),
@@ -313,51 +312,3 @@ def graph_matches_eager(device: torch.device, env: str, seed: int) -> dict[str, 
         results.append(_weights(state.agent))
         state.close()
     return _agreement(before, results[0], results[1])
-
-
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m dqnlab.bench.gpu", description=__doc__)
-    parser.add_argument("--device", default="auto", help="auto, cpu or cuda")
-    parser.add_argument("--quick", action="store_true", help="a tiny budget (a test's)")
-    parser.add_argument("--env", default="breakout", help="Atari game (breakout or pong)")
-    parser.add_argument("--json", type=Path, default=Path("bench-gpu.json"), help="output file")
-    parser.add_argument(
-        "--budget", type=float, default=BUDGET_SECONDS,
-        help="seconds after which sections not yet begun are skipped",
-    )  # fmt: skip
-    parser.add_argument("--only", default="", help="comma-separated sections to run (all)")
-    arguments = parser.parse_args(argv)
-    only = frozenset(filter(None, arguments.only.split(","))) or None
-    figures = write_gpu_benchmark(
-        arguments.json, arguments.device, arguments.quick, arguments.env, arguments.budget, only
-    )
-    print(json.dumps(figures, indent=2))
-    return 0
-
-
-def write_gpu_benchmark(
-    path: Path,
-    device: str,
-    quick: bool,
-    env: str,
-    budget_seconds: float = BUDGET_SECONDS,
-    only: frozenset[str] | None = None,
-) -> dict[str, Any]:
-    """Run `run_gpu_benchmark` on `device` ("auto": CUDA where there is one) and write its
-    figures to `path` as JSON."""
-    if device == "auto":
-        device = "cuda" if torch.cuda.is_available() else "cpu"
-    figures = run_gpu_benchmark(
-        torch.device(device),
-        quick=quick,
-        env=env,
-        echo=lambda line: print(line, file=sys.stderr),
-        budget_seconds=budget_seconds,
-        only=only,
-    )
-    path.write_text(json.dumps(figures, indent=2) + "\n")
-    return figures
-
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -1,11 +1,19 @@
 """Timings the benchmarks share: the machine they ran on, training frames/s with the share
-of each timed part, and the median times of an update and of sampling a minibatch."""
+of each timed part, the seconds of each of a number of calls, and the median times of an
+update and of sampling a minibatch.
+
+Why not `torch.utils.benchmark.Timer` for the medians: its `blocked_autorange` times blocks
+of calls, as many per block as make its own overhead under 1e-4 of the block; on a GPU that
+overhead is two synchronisations, so an update of a few milliseconds would be timed tens or
+hundreds at a time, back to back: another figure than the median of single updates each
+waited for. `gpu.py` times the back-to-back figure with it (`Timer.timeit`)."""
 
 from __future__ import annotations
 
 import os
 import platform
 import time
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -55,24 +63,26 @@ def measure_training(training: TrainingState, steps: int) -> tuple[float, dict[s
     return (training.frames - frames) / seconds, parts
 
 
+def call_seconds(action: Callable[[], object], repeats: int) -> np.ndarray:
+    """The wall seconds of each of `repeats` calls of `action`, one after another; an
+    action on a device waits for it itself (`.item()`), so that each call is timed whole."""
+    seconds = np.empty(repeats)
+    for index in range(repeats):
+        start = time.perf_counter()
+        action()
+        seconds[index] = time.perf_counter() - start
+    return seconds
+
+
 def median_update_ms(agent: Agent, batch: Batch, repeats: int = 50) -> float:
     """The median time of `repeats` updates on one minibatch (after 5 not timed), each
     waited for, in milliseconds."""
     for _ in range(5):
         agent.update(batch)
-    timings = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        agent.update(batch)[0].item()  # .item() waits for the device
-        timings.append(time.perf_counter() - start)
-    return float(np.median(timings) * 1e3)
+    seconds = call_seconds(lambda: agent.update(batch)[0].item(), repeats)  # .item() waits
+    return float(np.median(seconds) * 1e3)
 
 
 def median_sample_us(replay: ReplayMemory, repeats: int) -> float:
     """The median time of `repeats` minibatch samples, in microseconds."""
-    timings = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        replay.sample()
-        timings.append(time.perf_counter() - start)
-    return float(np.median(timings) * 1e6)
+    return float(np.median(call_seconds(replay.sample, repeats)) * 1e6)

@@ -1,4 +1,5 @@
-"""Peers for `dqnlab bench --peers`: other DQN implementations, run as new users run them.
+"""Peers for `--peers` (`dqnlab bench throughput` and `envs`): other DQN implementations,
+run as new users run them.
 
 Stable-Baselines3's DQN (optional extra `dqnlab[bench]`) with the Nature hyperparameters:
 its documented Atari pipeline (`make_atari_env` + `VecFrameStack(n_stack=4)`, one
@@ -158,8 +159,6 @@ def run_sb3_dqn(
             f"steps and learning_starts must be at least 1: {steps}, {learning_starts}"
         )
     import stable_baselines3
-    from stable_baselines3.common.callbacks import BaseCallback
-    from stable_baselines3.common.type_aliases import TrainFreq
 
     total_steps = learning_starts + steps
     buffer_size = total_steps if buffer_size is None else buffer_size
@@ -169,10 +168,42 @@ def run_sb3_dqn(
     stacked_env = model.get_env()
     assert stacked_env is not None
     ale = stacked_env.unwrapped.envs[0].unwrapped.ale  # type: ignore[attr-defined]
+    clock = _replay_start_clock(learning_starts, ale)
+    try:
+        # learn() ends with the update of the last 4 steps, so they are all in the time.
+        model.learn(total_timesteps=total_steps, callback=clock)
+        seconds = time.perf_counter() - clock.seconds
+        emulator_frames = ale.getFrameNumber() - clock.frames
+        machine_cpu, process_cpu = _busy_cpu_seconds()
+    finally:
+        stacked_env.close()
+    measured_steps = model.num_timesteps - clock.steps
+    machine_cores = (machine_cpu - clock.cpu_seconds[0]) / seconds
+    process_cores = (process_cpu - clock.cpu_seconds[1]) / seconds
+    cores = {
+        # Cores this run used, and cores other processes took meanwhile: a shared or busy
+        # machine shows here (a 2-thread update slows down badly when contended).
+        "process_cpu_cores": process_cores,
+        "other_processes_cpu_cores": machine_cores - process_cores,
+    }
+    return {
+        "peer": PEER_NAME,
+        "peer_version": stable_baselines3.__version__,
+        "peer_train_frames_per_second": ACTION_REPEAT_FRAMES * measured_steps / seconds,
+        "peer_emulator_frames_per_second": emulator_frames / seconds,
+        "peer_steps": measured_steps,
+        "peer_learning_starts": learning_starts,
+        "peer_buffer_size": model.buffer_size,
+        "peer_settings": {**_settings_read_back(model, env, total_steps), **cores},
+    }
+
+
+def _replay_start_clock(learning_starts: int, ale: Any) -> Any:
+    """An SB3 callback that notes the time, step, emulator frame count and CPU seconds
+    when replay start ends."""
+    from stable_baselines3.common.callbacks import BaseCallback
 
     class ReplayStartClock(BaseCallback):
-        """Notes the time, step and emulator frame count when replay start ends."""
-
         def __init__(self) -> None:
             super().__init__()
             self.seconds = 0.0
@@ -187,63 +218,43 @@ def run_sb3_dqn(
                 self.seconds = time.perf_counter()
             return True
 
-    clock = ReplayStartClock()
-    try:
-        # learn() ends with the update of the last 4 steps, so they are all in the time.
-        model.learn(total_timesteps=total_steps, callback=clock)
-        seconds = time.perf_counter() - clock.seconds
-        emulator_frames = ale.getFrameNumber() - clock.frames
-        machine_cpu, process_cpu = _busy_cpu_seconds()
-    finally:
-        stacked_env.close()
-    measured_steps = model.num_timesteps - clock.steps
-    machine_cores = (machine_cpu - clock.cpu_seconds[0]) / seconds
-    process_cores = (process_cpu - clock.cpu_seconds[1]) / seconds
+    return ReplayStartClock()
+
+
+def _settings_read_back(model: DQN, env: str, total_steps: int) -> dict[str, Any]:
+    """The settings SB3 actually ran, read back from the model."""
+    from stable_baselines3.common.type_aliases import TrainFreq
 
     optimizer = model.policy.optimizer
     train_freq = model.train_freq  # a TrainFreq once the model is set up
     assert isinstance(train_freq, TrainFreq)
     return {
-        "peer": PEER_NAME,
-        "peer_version": stable_baselines3.__version__,
-        "peer_train_frames_per_second": ACTION_REPEAT_FRAMES * measured_steps / seconds,
-        "peer_emulator_frames_per_second": emulator_frames / seconds,
-        "peer_steps": measured_steps,
-        "peer_learning_starts": learning_starts,
-        "peer_buffer_size": model.buffer_size,
-        # Read back from the model: what SB3 actually ran.
-        "peer_settings": {
-            "env_id": atari_env_id(env),
-            "env_kwargs": ATARI_ENV_KWARGS,
-            "wrappers": "make_atari_env (AtariWrapper defaults: noop_max=30, frame_skip=4 "
-            "with max of the last 2 frames, terminal_on_life_loss, FireResetEnv, 84x84 gray, "
-            "clip_reward) + VecFrameStack(n_stack=4) + VecTransposeImage",
-            "n_envs": model.n_envs,
-            "policy": type(model.policy).__name__,
-            "learning_rate": model.learning_rate,
-            "batch_size": model.batch_size,
-            "gamma": model.gamma,
-            "train_freq": train_freq.frequency,
-            "gradient_steps": model.gradient_steps,
-            "target_update_interval": model.target_update_interval,
-            "tau": model.tau,
-            "exploration_initial_eps": model.exploration_initial_eps,
-            "exploration_final_eps": model.exploration_final_eps,
-            "exploration_fraction": model.exploration_fraction,
-            "exploration_decay_steps": round(model.exploration_fraction * total_steps),
-            "optimizer": type(optimizer).__name__,
-            "optimizer_kwargs": {name: optimizer.defaults[name] for name in NATURE_RMSPROP_KWARGS},
-            "loss": "smooth_l1_loss (Huber, mean over the batch)",  # SB3 DQN.train
-            "max_grad_norm": model.max_grad_norm,
-            "optimize_memory_usage": model.optimize_memory_usage,
-            "replay_bytes_per_transition": replay_bytes_per_transition(model),
-            "updates": model._n_updates,
-            "device": str(model.device),
-            "threads": torch.get_num_threads(),
-            "torch": torch.__version__,
-            # Cores this run used, and cores other processes took meanwhile: a shared or
-            # busy machine shows here (a 2-thread update slows down badly when contended).
-            "process_cpu_cores": process_cores,
-            "other_processes_cpu_cores": machine_cores - process_cores,
-        },
+        "env_id": atari_env_id(env),
+        "env_kwargs": ATARI_ENV_KWARGS,
+        "wrappers": "make_atari_env (AtariWrapper defaults: noop_max=30, frame_skip=4 "
+        "with max of the last 2 frames, terminal_on_life_loss, FireResetEnv, 84x84 gray, "
+        "clip_reward) + VecFrameStack(n_stack=4) + VecTransposeImage",
+        "n_envs": model.n_envs,
+        "policy": type(model.policy).__name__,
+        "learning_rate": model.learning_rate,
+        "batch_size": model.batch_size,
+        "gamma": model.gamma,
+        "train_freq": train_freq.frequency,
+        "gradient_steps": model.gradient_steps,
+        "target_update_interval": model.target_update_interval,
+        "tau": model.tau,
+        "exploration_initial_eps": model.exploration_initial_eps,
+        "exploration_final_eps": model.exploration_final_eps,
+        "exploration_fraction": model.exploration_fraction,
+        "exploration_decay_steps": round(model.exploration_fraction * total_steps),
+        "optimizer": type(optimizer).__name__,
+        "optimizer_kwargs": {name: optimizer.defaults[name] for name in NATURE_RMSPROP_KWARGS},
+        "loss": "smooth_l1_loss (Huber, mean over the batch)",  # SB3 DQN.train
+        "max_grad_norm": model.max_grad_norm,
+        "optimize_memory_usage": model.optimize_memory_usage,
+        "replay_bytes_per_transition": replay_bytes_per_transition(model),
+        "updates": model._n_updates,
+        "device": str(model.device),
+        "threads": torch.get_num_threads(),
+        "torch": torch.__version__,
     }

@@ -1,4 +1,4 @@
-"""The throughput table of `dqnlab bench --num-envs ...`, in Markdown: one row per
+"""The throughput table of `dqnlab bench envs`, in Markdown: one row per
 (number of environments, concurrency) and per peer, then the update against the matrix
 multiply and, when measured, the stop checkpoint, each with its target (issue 22)."""
 

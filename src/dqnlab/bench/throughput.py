@@ -17,14 +17,9 @@ import psutil
 import torch
 
 from dqnlab.algorithm.replay import ReplayMemory
-from dqnlab.bench.cleanrl import cleanrl_figures
+from dqnlab.bench.cleanrl import CleanRLPeer, cleanrl_figures
 from dqnlab.bench.compression import measure_compression
-from dqnlab.bench.flops import (
-    agent_network_flops,
-    matmul_figures,
-    measure_matmul,
-    update_flop_figures,
-)
+from dqnlab.bench.flops import matmul_figures, measure_matmul, update_flop_figures, update_flops
 from dqnlab.bench.measure import (
     machine_figures,
     measure_training,
@@ -32,7 +27,7 @@ from dqnlab.bench.measure import (
     median_update_ms,
 )
 from dqnlab.bench.peers import peer_round, prepare_peers
-from dqnlab.config import resolve_config
+from dqnlab.config import Config, resolve_config
 from dqnlab.run.lockstep import play_games
 from dqnlab.run.play import play
 from dqnlab.run.state import TrainingState, replay_device
@@ -87,78 +82,11 @@ def run_benchmark(
         "steps": steps,
         "compile_update": compile_update,
     }
-
-    # Replay memory: resident size once every slot has been written.
-    before = _resident_bytes()
-    on_device = replay_device(config, device, (84, 84), np.dtype(np.uint8))
-    figures["replay_storage"] = "host" if on_device is None else f"host and {on_device}"
-    replay = ReplayMemory(replay_capacity, (84, 84), np.uint8, 4, 32, seed, device=on_device)
-    _fill(replay, np.random.default_rng(seed))
-    figures["replay_resident_bytes"] = _resident_bytes() - before
-    figures["replay_bytes_per_transition"] = replay.bytes_per_transition
-    figures["replay_resident_bytes_per_transition"] = figures["replay_resident_bytes"] / (
-        replay_capacity
-    )
-    figures["peak_resident_bytes"] = _resident_bytes()
-    figures["sample_us"] = median_sample_us(replay, 2000)
-
-    # The update alone, on one sampled minibatch.
+    replay = _filled_replay(config, device, figures)
     training = TrainingState(config, device, replay=replay)
-    agent = training.agent
-    figures["update_ms"] = median_update_ms(agent, replay.sample(), update_repeats)
-    # The limit the update is held against, measured now, on the same threads.
-    matmul = measure_matmul(device)
-    flop = agent_network_flops(agent).update(config.batch_size, config.target)
-    figures.update(update_flop_figures("", flop, figures["update_ms"], matmul))
-    figures.update(matmul_figures(matmul))
-
-    # Training after the replay-start phase, alternating with the peer when asked. Measured
-    # where epsilon has reached its final 0.1, as for 49 of the 50M steps of a Nature run
-    # (at the start of the anneal nearly every action is random and skips the network).
-    training.steps = config.replay_start_steps + config.epsilon_decay_steps
-    for _ in range(100):
-        training.advance()
-    train_runs, peer_runs, cleanrl_runs = [], [], []
-    for _ in range(rounds):
-        train_runs.append(measure_training(training, steps))
-        # The peers' ε reaches 0.1 by the end of their replay start: measured alike.
-        sb3_run, cleanrl_run = peer_round(
-            config, steps, peer_learning_starts, device, peers, cleanrl
-        )
-        peer_runs += [sb3_run] if sb3_run else []
-        cleanrl_runs += [cleanrl_run] if cleanrl_run else []
-    figures["train_frames_per_second"] = float(np.mean([run[0] for run in train_runs]))
-    figures["train_frames_per_second_runs"] = [round(run[0], 1) for run in train_runs]
-    for name, fraction in train_runs[-1][1].items():
-        figures[f"train_split_{name}"] = fraction
-    if peers:
-        peer_fps = [run["peer_train_frames_per_second"] for run in peer_runs]
-        figures.update({k: v for k, v in peer_runs[-1].items() if k.startswith("peer")})
-        figures["peer_train_frames_per_second"] = float(np.mean(peer_fps))
-        figures["peer_train_frames_per_second_runs"] = [round(f, 1) for f in peer_fps]
-        figures["train_ratio_vs_peer"] = (
-            figures["train_frames_per_second"] / figures["peer_train_frames_per_second"]
-        )
-    if cleanrl_runs:
-        figures.update(cleanrl_figures(cleanrl_runs, [run[0] for run in train_runs]))
-
-    # Evaluation at epsilon 0.05, both for `steps` agent steps: the final protocol's games
-    # on every core (as `dqnlab evaluate` plays them, cut when the steps are spent), and the
-    # periodic evaluation's single environment. Worker start-up is not timed.
-    final = play_games(
-        agent,
-        config,
-        config.final_eval_episodes,
-        seed,
-        epsilon=config.eval_epsilon,
-        max_episode_frames=config.final_eval_max_episode_frames,
-        max_steps=steps,
-    )
-    figures["eval_frames_per_second"] = final.frames_per_second
-    figures["eval_envs"] = final.num_envs
-    figures["eval_workers"] = final.workers
-    single = play(agent, training.eval_env, 4, config.eval_epsilon, max_steps=steps)
-    figures["eval_frames_per_second_single"] = single.frames_per_second
+    figures.update(_update_figures(training, update_repeats))
+    figures.update(_training_figures(training, steps, rounds, peer_learning_starts, peers, cleanrl))
+    figures.update(_evaluation_figures(training, steps))
     training.close()
     del replay, training
     if compression_fill_steps:
@@ -171,6 +99,104 @@ def run_benchmark(
                 seed,
                 rounds=3,
                 checkpoint_capacity=compression_checkpoint_capacity,
-            )  # fmt: skip
+            )
         )
     return figures
+
+
+def _filled_replay(config: Config, device: torch.device, figures: dict[str, Any]) -> ReplayMemory:
+    """The replay with every slot written, its resident size and its sampling time added to
+    `figures`."""
+    capacity, seed = config.replay_capacity, config.seed
+    before = _resident_bytes()
+    on_device = replay_device(config, device, (84, 84), np.dtype(np.uint8))
+    figures["replay_storage"] = "host" if on_device is None else f"host and {on_device}"
+    replay = ReplayMemory(capacity, (84, 84), np.uint8, 4, 32, seed, device=on_device)
+    _fill(replay, np.random.default_rng(seed))
+    figures["replay_resident_bytes"] = _resident_bytes() - before
+    figures["replay_bytes_per_transition"] = replay.bytes_per_transition
+    figures["replay_resident_bytes_per_transition"] = figures["replay_resident_bytes"] / capacity
+    figures["peak_resident_bytes"] = _resident_bytes()
+    figures["sample_us"] = median_sample_us(replay, 2000)
+    return replay
+
+
+def _update_figures(training: TrainingState, update_repeats: int) -> dict[str, Any]:
+    """The update alone on one sampled minibatch, its FLOPs (counted on a first update)
+    and the matrix multiply it is held against, measured now on the same threads."""
+    batch = training.replay.sample()
+    flop = update_flops(training.agent, batch)
+    update_ms = median_update_ms(training.agent, batch, update_repeats)
+    matmul = measure_matmul(training.agent.device)
+    return {
+        "update_ms": update_ms,
+        **update_flop_figures("", flop, update_ms, matmul),
+        **matmul_figures(matmul),
+    }
+
+
+def _training_figures(
+    training: TrainingState,
+    steps: int,
+    rounds: int,
+    peer_learning_starts: int,
+    peers: bool,
+    cleanrl: CleanRLPeer | None,
+) -> dict[str, Any]:
+    """Training after the replay-start phase, alternating with the peers when asked.
+    Measured where epsilon has reached its final 0.1, as for 49 of the 50M steps of a
+    Nature run (at the start of the anneal nearly every action is random and skips the
+    network)."""
+    config = training.config
+    training.steps = config.replay_start_steps + config.epsilon_decay_steps
+    for _ in range(100):
+        training.advance()
+    train_runs, peer_runs, cleanrl_runs = [], [], []
+    for _ in range(rounds):
+        train_runs.append(measure_training(training, steps))
+        # The peers' ε reaches 0.1 by the end of their replay start: measured alike.
+        sb3_run, cleanrl_run = peer_round(
+            config, steps, peer_learning_starts, training.agent.device, peers, cleanrl
+        )
+        peer_runs += [sb3_run] if sb3_run else []
+        cleanrl_runs += [cleanrl_run] if cleanrl_run else []
+    figures: dict[str, Any] = {
+        "train_frames_per_second": float(np.mean([run[0] for run in train_runs])),
+        "train_frames_per_second_runs": [round(run[0], 1) for run in train_runs],
+    }
+    for name, fraction in train_runs[-1][1].items():
+        figures[f"train_split_{name}"] = fraction
+    if peer_runs:
+        figures.update(_sb3_figures(peer_runs, figures["train_frames_per_second"]))
+    if cleanrl_runs:
+        figures.update(cleanrl_figures(cleanrl_runs, [run[0] for run in train_runs]))
+    return figures
+
+
+def _sb3_figures(peer_runs: list[dict[str, Any]], train_frames_per_second: float) -> dict[str, Any]:
+    """Stable-Baselines3's mean frames/s over the rounds, each round's, the last round's
+    settings and dqnlab's ratio to it."""
+    peer_fps = [run["peer_train_frames_per_second"] for run in peer_runs]
+    figures = {k: v for k, v in peer_runs[-1].items() if k.startswith("peer")}
+    figures["peer_train_frames_per_second"] = float(np.mean(peer_fps))
+    figures["peer_train_frames_per_second_runs"] = [round(f, 1) for f in peer_fps]
+    figures["train_ratio_vs_peer"] = train_frames_per_second / float(np.mean(peer_fps))
+    return figures
+
+
+def _evaluation_figures(training: TrainingState, steps: int) -> dict[str, Any]:
+    """Evaluation at epsilon 0.05, both for `steps` agent steps: the final protocol's
+    games on every core (as `dqnlab evaluate` plays them, cut when the steps are spent),
+    and the periodic evaluation's single environment. Worker start-up is not timed."""
+    config, agent = training.config, training.agent
+    final = play_games(
+        agent, config, config.final_eval_episodes, config.seed, epsilon=config.eval_epsilon,
+        max_episode_frames=config.final_eval_max_episode_frames, max_steps=steps,
+    )  # fmt: skip
+    single = play(agent, training.eval_env, 4, config.eval_epsilon, max_steps=steps)
+    return {
+        "eval_frames_per_second": final.frames_per_second,
+        "eval_envs": final.num_envs,
+        "eval_workers": final.workers,
+        "eval_frames_per_second_single": single.frames_per_second,
+    }

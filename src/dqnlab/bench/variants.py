@@ -1,32 +1,30 @@
-"""What each member of the DQN family costs on this machine: `dqnlab bench --variants`.
+"""What each member of the DQN family costs on this machine: `dqnlab bench variants`.
 
 Every variant is its shipped preset on the same game, with replays of the same size filled
 with the same frames. Per variant: the minibatch draw (for prioritized replay, with the
 priority update that follows every update), the update alone (with its GFLOP/s against a
 dense float32 matrix multiply's timed right after it; its FLOPs counted by
-PyTorch's `FlopCounterMode` on one update), and training frames/s once
+PyTorch's `FlopCounterMode` on one update, `flops.py`), and training frames/s once
 learning runs, measured in alternating rounds so that a change in the machine's load falls
 on every variant alike. Frames/s are also given as a ratio to the `nature` preset's in the
 same run (and prioritized replay's to uniform's), with the share of each timed part of a
 step (environment, acting, storing, sampling, update), and the minutes one whole run of the
-preset takes here (`_run_minutes`: `--variants der,drq_epsilon` gives Atari 100k's minutes
+preset takes here (`_run_minutes`: `variants der,drq_epsilon` gives Atari 100k's minutes
 per game). Besides, the prioritized draw and update on a full 1M-slot sum tree: the
 replay's part of one prioritized update at Nature's size.
 """
 
 from __future__ import annotations
 
-import time
 from typing import Any
 
 import numpy as np
 import torch
-from torch.utils.flop_counter import FlopCounterMode
 
 from dqnlab.algorithm.prioritized import measure_sampling
 from dqnlab.algorithm.replay import ReplayMemory
-from dqnlab.bench.flops import measure_matmul, update_flop_figures
-from dqnlab.bench.measure import machine_figures, measure_training
+from dqnlab.bench.flops import measure_matmul, update_flop_figures, update_flops
+from dqnlab.bench.measure import call_seconds, machine_figures, measure_training, median_update_ms
 from dqnlab.config import Config, preset_names, resolve_config
 from dqnlab.errors import ConfigError
 from dqnlab.run.lockstep import play_games
@@ -42,7 +40,7 @@ def parse_variants(text: str) -> list[str]:
     unknown = [name for name in names if name not in preset_names()]
     if unknown or not names:
         raise ConfigError(
-            f"--variants {text!r}: {', '.join(unknown) or 'nothing'} is not a shipped preset; "
+            f"variants {text!r}: {', '.join(unknown) or 'nothing'} is not a shipped preset; "
             f"accepted: all, or a list of {', '.join(preset_names())}"
         )
     return names
@@ -61,15 +59,6 @@ def _fill(replay: ReplayMemory, rng: np.random.Generator) -> None:
 
 def _sample(replay: ReplayMemory, config: Config) -> Any:
     return replay.sample(config.replay_start_steps)  # prioritized replay's beta at its start
-
-
-def _median_us(action: Any, repeats: int) -> float:
-    timings = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        action()
-        timings.append(time.perf_counter() - start)
-    return float(np.median(timings) * 1e6)
 
 
 def _run_minutes(
@@ -118,44 +107,9 @@ def measure_variants(
     states: dict[str, TrainingState] = {}
     for preset in presets:
         config = resolve_config(preset, env=env, seed=seed, replay_capacity=replay_capacity)
-        state = TrainingState(config, device)
-        _fill(state.replay, np.random.default_rng(seed))
-        replay, agent = state.replay, state.agent
-
-        def sample_and_tell(replay: ReplayMemory = replay, config: Config = config) -> None:
-            batch = _sample(replay, config)
-            replay.sampler.tell(batch, np.abs(batch.rewards) + 0.5)  # uniform: nothing
-
-        figures[f"{preset}_sample_us"] = _median_us(sample_and_tell, 1000)
-        batch = _sample(replay, config)
-        # The first warm-up update counted by PyTorch's own FLOP counter: the products of
-        # whatever the preset's parts compute (IQN's fraction samples, C51's projection),
-        # where `flops.py`'s formula knows the shipped TD losses' passes only.
-        with FlopCounterMode(display=False) as counter:
-            agent.update(batch)
-        flop = counter.get_total_flops()
-        for _ in range(2):
-            agent.update(batch)
-
-        def update(agent: Any = agent, batch: Any = batch) -> None:
-            agent.update(batch)[0].item()  # .item() waits for the device
-
-        update_ms = _median_us(update, update_repeats) / 1e3
-        figures[f"{preset}_update_ms"] = update_ms
-        matmul = measure_matmul(device)
-        figures.update(update_flop_figures(f"{preset}_", flop, update_ms, matmul))
-        figures[f"{preset}_matmul_gflop_per_s"] = matmul.median_gflop_per_s
-        # Past the replay start and the epsilon anneal, as for most of a run.
-        state.steps = config.replay_start_steps + config.epsilon_decay_steps
-        for _ in range(100):
-            state.advance()
-        states[preset] = state
-    runs: dict[str, list[float]] = {preset: [] for preset in presets}
-    splits: dict[str, dict[str, float]] = {}
-    for _ in range(rounds):
-        for preset, state in states.items():
-            frames_per_second, splits[preset] = measure_training(state, steps)
-            runs[preset].append(frames_per_second)
+        states[preset] = TrainingState(config, device)
+        figures.update(_update_figures(preset, states[preset], update_repeats))
+    runs, splits = _training_rounds(states, steps, rounds)
     for preset, state in states.items():
         frames_per_second = float(np.mean(runs[preset]))
         figures[f"{preset}_train_frames_per_second"] = frames_per_second
@@ -164,19 +118,71 @@ def measure_variants(
             figures[f"{preset}_train_split_{part}"] = fraction
         figures.update(_run_minutes(preset, state, frames_per_second, steps))
         state.close()
-    base = figures.get("nature_train_frames_per_second")
-    for preset in presets:
-        if base:
-            ratio = figures[f"{preset}_train_frames_per_second"] / base
-            figures[f"{preset}_train_ratio_vs_nature"] = ratio
-    if "prioritized" in presets and "double" in presets:
-        # The prioritized preset is the tuned Double DQN with prioritized replay.
-        figures["prioritized_train_ratio_vs_double"] = (
-            figures["prioritized_train_frames_per_second"]
-            / figures["double_train_frames_per_second"]
-        )
+    figures.update(_ratios(figures, presets))
     full = measure_sampling(capacity=FULL_REPLAY_SLOTS, batch_size=32, repeats=2000, seed=seed)
     figures["prioritized_1m_sample_us"] = full["sample_us"]
     figures["prioritized_1m_update_us"] = full["update_us"]
     figures["prioritized_1m_sample_and_update_us"] = full["total_us"]
     return figures
+
+
+def _update_figures(preset: str, state: TrainingState, update_repeats: int) -> dict[str, Any]:
+    """The preset's replay filled; its minibatch draw (with the priority update that
+    follows, where there is one) and its update, against a matrix multiply timed right
+    after; the state then taken past the replay start and the epsilon anneal, as for most
+    of a run, and warmed up."""
+    config, replay, agent = state.config, state.replay, state.agent
+    _fill(replay, np.random.default_rng(config.seed))
+
+    def sample_and_tell() -> None:
+        batch = _sample(replay, config)
+        replay.sampler.tell(batch, np.abs(batch.rewards) + 0.5)  # uniform: nothing
+
+    figures = {f"{preset}_sample_us": float(np.median(call_seconds(sample_and_tell, 1000)) * 1e6)}
+    batch = _sample(replay, config)
+    # Counted by PyTorch's own FLOP counter: the products of whatever the preset's parts
+    # compute (IQN's fraction samples, C51's projection).
+    flop = update_flops(agent, batch)
+    update_ms = median_update_ms(agent, batch, update_repeats)
+    matmul = measure_matmul(state.agent.device)
+    figures[f"{preset}_update_ms"] = update_ms
+    figures.update(update_flop_figures(f"{preset}_", flop, update_ms, matmul))
+    figures[f"{preset}_matmul_gflop_per_s"] = matmul.median_gflop_per_s
+    state.steps = config.replay_start_steps + config.epsilon_decay_steps
+    for _ in range(100):
+        state.advance()
+    return figures
+
+
+def _training_rounds(
+    states: dict[str, TrainingState], steps: int, rounds: int
+) -> tuple[dict[str, list[float]], dict[str, dict[str, float]]]:
+    """Training frames/s of each preset in each of `rounds` alternating rounds, so that a
+    change in the machine's load falls on every preset alike, and the shares of the parts
+    of a step in its last round."""
+    runs: dict[str, list[float]] = {preset: [] for preset in states}
+    splits: dict[str, dict[str, float]] = {}
+    for _ in range(rounds):
+        for preset, state in states.items():
+            frames_per_second, splits[preset] = measure_training(state, steps)
+            runs[preset].append(frames_per_second)
+    return runs, splits
+
+
+def _ratios(figures: dict[str, Any], presets: list[str]) -> dict[str, float]:
+    """Each preset's training frames/s against the nature preset's (when measured), and
+    prioritized replay's against uniform's: the prioritized preset is the tuned Double DQN
+    with prioritized replay."""
+    ratios = {}
+    base = figures.get("nature_train_frames_per_second")
+    for preset in presets:
+        if base:
+            ratios[f"{preset}_train_ratio_vs_nature"] = (
+                figures[f"{preset}_train_frames_per_second"] / base
+            )
+    if "prioritized" in presets and "double" in presets:
+        ratios["prioritized_train_ratio_vs_double"] = (
+            figures["prioritized_train_frames_per_second"]
+            / figures["double_train_frames_per_second"]
+        )
+    return ratios

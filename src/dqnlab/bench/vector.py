@@ -1,4 +1,4 @@
-"""Training throughput with several environments: `dqnlab bench --num-envs 1,2,4,8`.
+"""Training throughput with several environments: `dqnlab bench envs --num-envs 1,2,4,8`.
 
 Each count N is the nature preset with `num_envs` = N on the same game, its replay streams
 filled with the same frames, measured past the replay start and the ε anneal (ε = 0.1, as
@@ -15,6 +15,9 @@ table (`table.py` prints it)."""
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from functools import partial
 from typing import Any
 
 import numpy as np
@@ -22,12 +25,7 @@ import torch
 
 from dqnlab.algorithm.replay import ReplayMemory
 from dqnlab.bench.cleanrl import CleanRLPeer
-from dqnlab.bench.flops import (
-    agent_network_flops,
-    matmul_figures,
-    measure_matmul,
-    update_flop_figures,
-)
+from dqnlab.bench.flops import matmul_figures, measure_matmul, update_flop_figures, update_flops
 from dqnlab.bench.measure import (
     machine_figures,
     measure_training,
@@ -114,10 +112,9 @@ def _update_figures(env: str, device: torch.device, seed: int) -> dict[str, Any]
     training = TrainingState(_config(env, seed, replay_capacity=UPDATE_REPLAY_SLOTS), device)
     try:
         _fill(training.replay, np.random.default_rng(seed))
-        update_ms = median_update_ms(training.agent, training.replay.sample())
-        flop = agent_network_flops(training.agent).update(
-            training.config.batch_size, training.config.target
-        )
+        batch = training.replay.sample()
+        flop = update_flops(training.agent, batch)
+        update_ms = median_update_ms(training.agent, batch)
     finally:
         training.close()
     matmul = measure_matmul(device)
@@ -150,8 +147,8 @@ def measure_num_envs(
     """Training frames/s and where the time goes for each number of environments (and
     each `concurrency`), as `num_envs_{N}[_actor_learner]_{figure}` keys beside the
     machine's; the nature update's GFLOP/s against this machine's matrix multiply, timed
-    first (`_update_figures`). With `peers` (Stable-Baselines3) and `cleanrl`, the peers take their
-    turn in each round, and every row gets its ratio to each."""
+    first (`_update_figures`). With `peers` (Stable-Baselines3) and `cleanrl`, the peers
+    take their turn in each round, and every row gets its ratio to each."""
     device = device or torch.device("cpu")
     figures: dict[str, Any] = {
         "env": env,
@@ -162,11 +159,43 @@ def measure_num_envs(
     }
     figures.update(_update_figures(env, device, seed))
     states = _states(counts, concurrency, env, replay_capacity, device, seed)
+    peers_round = partial(
+        peer_round, _config(env, seed), steps, peer_learning_starts, device, peers, cleanrl
+    )
+    measured = _rounds(states, figures, rounds, peers_round)
+    for key, state in states.items():
+        runs, shares = measured.frames_per_second[key], measured.shares[key]
+        figures[f"{key}_train_frames_per_second"] = float(np.mean(runs))
+        figures[f"{key}_train_frames_per_second_runs"] = [round(f, 1) for f in runs]
+        for part in shares[0]:
+            figures[f"{key}_share_{part}"] = round(float(np.mean([s[part] for s in shares])), 4)
+        state.close()
+    peer_figures = _peer_figures(measured.sb3_runs, measured.cleanrl_runs)
+    figures.update(peer_figures)
+    figures.update(_ratios(figures, list(states), peer_figures))
+    return figures
 
-    runs: dict[str, list[float]] = {key: [] for key in states}
-    parts: dict[str, list[dict[str, float]]] = {key: [] for key in states}
-    peer_runs: list[dict[str, Any]] = []
-    cleanrl_runs: list[dict[str, Any]] = []
+
+@dataclass
+class _Measured:
+    """What the rounds measured: per state, its frames/s and the shares of its parts in
+    each round; the peers' runs."""
+
+    frames_per_second: dict[str, list[float]]
+    shares: dict[str, list[dict[str, float]]]
+    sb3_runs: list[dict[str, Any]] = field(default_factory=list)
+    cleanrl_runs: list[dict[str, Any]] = field(default_factory=list)
+
+
+def _rounds(
+    states: dict[str, TrainingState],
+    figures: dict[str, Any],
+    rounds: int,
+    peers_round: Callable[[], tuple[dict[str, Any] | None, dict[str, Any] | None]],
+) -> _Measured:
+    """Each round: every state in turn for `figures["steps"]` agent steps (its threads
+    noted in `figures`), then the peers."""
+    measured = _Measured({key: [] for key in states}, {key: [] for key in states})
     threads = figures["threads"]
     for _ in range(rounds):
         for key, state in states.items():
@@ -175,37 +204,34 @@ def measure_num_envs(
             figures[f"{key}_threads"] = _threads_of(state, threads)
             torch.set_num_threads(figures[f"{key}_threads"])
             frames_per_second, shares = measure_training(
-                state, whole_rounds(steps, len(state.envs))
+                state, whole_rounds(figures["steps"], len(state.envs))
             )
             torch.set_num_threads(threads)
             if "wait" in state.seconds:
                 shares["learner_waiting"] = state.seconds["wait"] / state.seconds["total"]
-            runs[key].append(frames_per_second)
-            parts[key].append(shares)
-        sb3_run, cleanrl_run = peer_round(
-            _config(env, seed), steps, peer_learning_starts, device, peers, cleanrl
-        )
-        peer_runs += [sb3_run] if sb3_run else []
-        cleanrl_runs += [cleanrl_run] if cleanrl_run else []
-    for key, state in states.items():
-        figures[f"{key}_train_frames_per_second"] = float(np.mean(runs[key]))
-        figures[f"{key}_train_frames_per_second_runs"] = [round(f, 1) for f in runs[key]]
-        for part in parts[key][0]:
-            share = float(np.mean([shares[part] for shares in parts[key]]))
-            figures[f"{key}_share_{part}"] = round(share, 4)
-        state.close()
+            measured.frames_per_second[key].append(frames_per_second)
+            measured.shares[key].append(shares)
+        sb3_run, cleanrl_run = peers_round()
+        measured.sb3_runs += [sb3_run] if sb3_run else []
+        measured.cleanrl_runs += [cleanrl_run] if cleanrl_run else []
+    return measured
+
+
+def _ratios(
+    figures: dict[str, Any], keys: list[str], peer_figures: dict[str, Any]
+) -> dict[str, float]:
+    """Each row's frames/s against one environment's and against each peer's."""
+    ratios = {}
     base = figures.get("num_envs_1_train_frames_per_second")
-    peer_figures = _peer_figures(peer_runs, cleanrl_runs)
-    figures.update(peer_figures)
-    for key in states:
+    for key in keys:
         ours = figures[f"{key}_train_frames_per_second"]
         if base:
-            figures[f"{key}_ratio_vs_1"] = ours / base
+            ratios[f"{key}_ratio_vs_1"] = ours / base
         for peer in ("sb3", "cleanrl"):
             theirs = peer_figures.get(f"{peer}_train_frames_per_second")
             if theirs:
-                figures[f"{key}_ratio_vs_{peer}"] = ours / theirs
-    return figures
+                ratios[f"{key}_ratio_vs_{peer}"] = ours / theirs
+    return ratios
 
 
 def _peer_figures(

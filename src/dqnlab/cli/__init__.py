@@ -3,25 +3,22 @@ share agents (export, push, pull), list games and presets."""
 
 from __future__ import annotations
 
+from typing import Any
+
 import typer
+from typer.core import TyperGroup
 
 from dqnlab.cli import bench, hub, listings, results, sweeps, train
 from dqnlab.cli.allocator import keep_freed_memory
 from dqnlab.cli.common import run_command
 
-app = typer.Typer(
-    add_completion=False,
-    no_args_is_help=True,
-    pretty_exceptions_enable=False,
-    rich_markup_mode="markdown",
-    help="The Nature DQN exactly as DeepMind ran it, on Atari or any discrete-action Gymnasium env.",
-)
-# In the order `dqnlab --help` lists them; each command's name is its function's.
-for command in (
+# In the order `dqnlab --help` lists them; each command's name is its function's, and
+# `bench` is a group of subcommands (`dqnlab bench throughput`...).
+COMMANDS = (
     train.train,
     train.resume,
     results.evaluate,
-    bench.bench,
+    bench.app,
     sweeps.ablate,
     sweeps.sweep,
     sweeps.status,
@@ -32,8 +29,33 @@ for command in (
     hub.pull,
     listings.games,
     listings.presets,
-):
-    app.command()(command)
+)
+
+
+def _name(command: Any) -> str:
+    return str(command.info.name if isinstance(command, typer.Typer) else command.__name__)
+
+
+class _InOrder(TyperGroup):
+    """The commands in COMMANDS' order: typer would list a group after every command."""
+
+    def list_commands(self, ctx: Any) -> list[str]:
+        return [_name(command) for command in COMMANDS]
+
+
+app = typer.Typer(
+    cls=_InOrder,
+    add_completion=False,
+    no_args_is_help=True,
+    pretty_exceptions_enable=False,
+    rich_markup_mode="markdown",
+    help="The Nature DQN exactly as DeepMind ran it, on Atari or any discrete-action Gymnasium env.",
+)
+for command in COMMANDS:
+    if isinstance(command, typer.Typer):
+        app.add_typer(command)
+    else:
+        app.command()(command)
 
 
 def main() -> None:

@@ -152,9 +152,8 @@ class TrainingLoop:
         self.run_dir = run_dir
         self.lease = lease
         self.threads = apply_threads(config)  # before anything computes
-        warning = busy_cores_warning(self.threads, device)
-        if warning and not resume:
-            tqdm.write(warning, file=sys.stderr)
+        if not resume:
+            _say(busy_cores_warning(self.threads, device))
         self.state = training_state(config, device)
         # The network `auto` chose, written out where it is one of the newer kinds.
         if resume:
@@ -168,9 +167,6 @@ class TrainingLoop:
         pending: list[dict[str, Any]] = []  # evaluations a checkpoint left in flight
         if resume:
             pending = self._restore(device)
-            warning = resume_warning(config, device)
-            if warning:
-                tqdm.write(warning, file=sys.stderr)
         else:
             rundir.write_run_config(run_dir, config)
         check_disk(run_dir, self.state.replay)
@@ -391,10 +387,9 @@ class TrainingLoop:
         # states, frame histories and screens stay on the host, where NumPy reads them).
         loaded = self.store.latest(self.fingerprint, into=replay.arrays, map_location="cpu")
         replay.upload()
+        _say(resume_warning(self.config, device))
         if loaded is not None:
-            said = resume_threads(self.config, device, loaded.state.get("threads"))
-            if said:
-                tqdm.write(said, file=sys.stderr)
+            _say(resume_threads(self.config, device, loaded.state.get("threads")))
             self.threads = torch.get_num_threads()
             self.state.load_state_dict(loaded.state["learner"])
             self.progress = RunProgress(**loaded.state["run"])
@@ -445,6 +440,12 @@ class TrainingLoop:
             eval_mean,
             self.state.agent.observation_layout,
         )
+
+
+def _say(message: str | None) -> None:
+    """A warning or note on stderr, clear of the progress bar; nothing for None."""
+    if message:
+        tqdm.write(message, file=sys.stderr)
 
 
 def _periodic_mean(result: EvaluationResult) -> float:

@@ -1,5 +1,8 @@
-"""What Ray adds to a sweep, and how soon a run trains again after its node is lost
-(`dqnlab bench --sweep`).
+"""What does Ray add to a sweep's runs, and how soon does a run train again after its node is
+lost? Answered once (2026-12-02: about a second per run, and 14-15 s from a lost node to
+training again); the figures are in docs/benchmark.md, "What does Ray add to a sweep?"
+(#what-ray-costs-a-sweep). Run:
+`python scripts/sweep_overhead.py --runs 4 --repeats 2`.
 
 Three measurements, each on a Ray cluster on 127.0.0.1 started here and shut down after:
 
@@ -28,16 +31,20 @@ import platform
 import statistics
 import subprocess
 import sys
+import tempfile
 import time
 from collections.abc import Callable, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor, wait
 from pathlib import Path
-from typing import Any
+from typing import Annotated, Any
 
 import psutil
+import typer
 
 from dqnlab import __version__
 from dqnlab.analysis.status import read_attempts
+from dqnlab.cli.bench import JsonPath, report
+from dqnlab.cli.common import run_command
 from dqnlab.config import config_to_toml
 from dqnlab.errors import DqnlabError
 from dqnlab.run import rundir
@@ -80,7 +87,7 @@ def run_sweep_benchmark(
     if ray.is_initialized():
         raise DqnlabError("the sweep benchmark starts its own Ray clusters: run it unconnected")
     if runs <= 0 or repeats <= 0:
-        raise DqnlabError(f"--sweep-runs {runs} and --sweep-repeats {repeats} must be positive")
+        raise DqnlabError(f"--runs {runs} and --repeats {repeats} must be positive")
     figures: dict[str, Any] = {
         "env": ENV,
         "cpu_count": psutil.cpu_count(),
@@ -92,14 +99,35 @@ def run_sweep_benchmark(
         "run_steps": run_steps,
         "cpus_per_run": CPUS_PER_RUN,
     }
+    figures.update(measure_overhead(directory, runs, repeats, run_steps, echo))
+    figures.update(measure_node_loss(directory / "node-loss", node_loss_steps, echo))
+    echo(f"dqnlab: node lost: its run started again after "
+         f"{figures['node_loss_to_retry_start_seconds']:.1f} s, trained past its checkpoint "
+         f"after {figures['node_loss_to_training_seconds']:.1f} s")  # fmt: skip
+    return figures
+
+
+def measure_overhead(
+    directory: Path, runs: int, repeats: int, run_steps: int, echo: Callable[[str], Any]
+) -> dict[str, Any]:
+    """Ray's start-up on a loopback cluster, then the same runs trained by hand and by the
+    sweep, alternately, `repeats` times (`overhead_figures`)."""
+    ray = import_ray()
+    figures: dict[str, Any] = {}
     by_hand: list[tuple[float, list[float]]] = []
     on_ray: list[tuple[float, list[float]]] = []
     start = time.perf_counter()
     connection = connect("local")
     try:
         figures["ray_start_seconds"] = time.perf_counter() - start
+
+        # Defined here: Ray sends a local function itself, a module's by name, which a
+        # worker may not import from a script (tests load this as scripts.sweep_overhead).
+        def nothing() -> None:
+            return None
+
         start = time.perf_counter()
-        ray.get(ray.remote(_nothing).remote())
+        ray.get(ray.remote(nothing).remote())
         figures["ray_first_task_seconds"] = time.perf_counter() - start
         echo(f"dqnlab: Ray started in {figures['ray_start_seconds']:.1f} s, first task "
              f"{figures['ray_first_task_seconds']:.1f} s")  # fmt: skip
@@ -123,15 +151,7 @@ def run_sweep_benchmark(
         connection.close()
     start_up = figures["ray_start_seconds"] + figures["ray_first_task_seconds"]
     figures.update(overhead_figures(by_hand, on_ray, runs, start_up))
-    figures.update(measure_node_loss(directory / "node-loss", node_loss_steps, echo))
-    echo(f"dqnlab: node lost: its run started again after "
-         f"{figures['node_loss_to_retry_start_seconds']:.1f} s, trained past its checkpoint "
-         f"after {figures['node_loss_to_training_seconds']:.1f} s")  # fmt: skip
     return figures
-
-
-def _nothing() -> None:
-    return None
 
 
 def plan_runs(sweep_dir: Path, runs: int, steps: int) -> Sweep:
@@ -401,3 +421,30 @@ def _wait_until(
         if time.monotonic() >= deadline:
             raise DqnlabError(f"waited {WAIT_SECONDS:.0f} s for {what}: " + " | ".join(lines[-8:]))
         time.sleep(POLL_SECONDS)
+
+
+app = typer.Typer(add_completion=False, pretty_exceptions_enable=False)
+
+
+@app.command()
+def main(
+    runs: Annotated[
+        int, typer.Option(help="Tiny CartPole runs trained each way in each repeat")
+    ] = 4,
+    repeats: Annotated[
+        int, typer.Option(help="Times the runs are trained by hand and by the sweep, in turn")
+    ] = 2,
+    json_path: JsonPath = None,
+) -> None:
+    """What Ray adds to a sweep (its start-up, and per run against the same runs trained
+    by hand), and the time from a lost node to its run training again, on loopback
+    clusters of this machine."""
+    with tempfile.TemporaryDirectory(prefix="dqnlab-sweep-bench-") as directory:
+        figures = run_sweep_benchmark(
+            Path(directory), runs, repeats, echo=lambda line: typer.echo(line, err=True)
+        )
+    report(figures, json_path)
+
+
+if __name__ == "__main__":
+    run_command(app)

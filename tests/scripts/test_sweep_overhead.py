@@ -1,5 +1,5 @@
-"""The sweep benchmark's arithmetic (worked out by hand), and its figures on the smallest
-settings (slow: loopback Ray clusters, tiny CartPole runs; not their speed)."""
+"""scripts/sweep_overhead.py: its arithmetic (worked out by hand), and its figures on the
+smallest settings (slow: loopback Ray clusters, tiny CartPole runs; not their speed)."""
 
 from __future__ import annotations
 
@@ -9,8 +9,13 @@ from pathlib import Path
 import psutil
 import pytest
 
-from dqnlab.bench.sweep import overhead_figures, run_sweep_benchmark, runs_at_once
 from dqnlab.sweeps.resources import RunResources
+from tests.scripts import load_script
+
+sweep_overhead = load_script("sweep_overhead")
+overhead_figures = sweep_overhead.overhead_figures
+run_sweep_benchmark = sweep_overhead.run_sweep_benchmark
+runs_at_once = sweep_overhead.runs_at_once
 
 
 def test_overhead_per_run_is_the_difference_of_the_walls_over_the_runs() -> None:
