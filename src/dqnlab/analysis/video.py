@@ -31,7 +31,7 @@ from PIL import Image
 
 from dqnlab.algorithm.agent import Agent
 from dqnlab.config import Config, derive_seeds
-from dqnlab.envs import is_atari, make_env
+from dqnlab.envs import Environment, is_atari, make_env
 from dqnlab.envs.atari import AtariEnv
 from dqnlab.envs.generic import GymnasiumEnv
 from dqnlab.errors import DqnlabError
@@ -409,19 +409,7 @@ def record_games(
         raise ValueError(f"episodes must be positive, got {episodes}")
     chosen_format, note = choose_video_format(video_format)
     env_seed = derive_seeds(seed, 1)[0]  # as play_games seeds its first environment
-    try:
-        env = make_env(
-            config,
-            training=False,
-            seed=env_seed,
-            max_episode_frames=max_episode_frames,
-            render_mode=None if is_atari(config.env) else "rgb_array",
-        )
-    except TypeError as error:  # from gym.make: a constructor without render_mode
-        raise DqnlabError(
-            f"{config.env} cannot be filmed: it cannot be made with render_mode 'rgb_array' "
-            f"({error})"
-        ) from None
+    env = _env_to_film(config, env_seed, max_episode_frames)
     try:
         assert isinstance(env, (AtariEnv, GymnasiumEnv))  # all that make_env builds
         fps = _filming_fps(env, config.env)
@@ -445,6 +433,23 @@ def record_games(
     gif_fps = 100 / gif_delay_centiseconds(fps, _gif_stride(fps))
     file_fps = gif_fps if chosen_format == "gif" else fps
     return Recording(result, recorder.paths, chosen_format, file_fps, note)
+
+
+def _env_to_film(config: Config, seed: int, max_episode_frames: int) -> Environment:
+    """The evaluation environment, made to render RGB frames where it is not Atari's."""
+    try:
+        return make_env(
+            config,
+            training=False,
+            seed=seed,
+            max_episode_frames=max_episode_frames,
+            render_mode=None if is_atari(config.env) else "rgb_array",
+        )
+    except TypeError as error:  # from gym.make: a constructor without render_mode
+        raise DqnlabError(
+            f"{config.env} cannot be filmed: it cannot be made with render_mode 'rgb_array' "
+            f"({error})"
+        ) from None
 
 
 def filmed_final_evaluation(

@@ -4,7 +4,7 @@ scores, tables, curves and Q-values."""
 from __future__ import annotations
 
 from pathlib import Path
-from typing import TYPE_CHECKING, Annotated
+from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
 
@@ -14,6 +14,18 @@ from dqnlab.errors import DqnlabError
 
 if TYPE_CHECKING:
     from dqnlab.analysis.report.aggregate import AggregateSettings
+    from dqnlab.run.evaluate import EvaluatedNetwork
+    from dqnlab.run.play import EvaluationResult
+
+REFERENCE_HELP = (
+    "dopamine: Dopamine's published curves behind Atari games' and the on-track table; "
+    "der-paper: the Atari 100k table against Data-Efficient Rainbow's published scores, which "
+    "join the aggregates; none"
+)
+BASELINE_HELP = (
+    "Human score of the aggregates across games: human (dqn_zoo's) or human_nature (the "
+    "Nature paper's tester)"
+)
 
 
 def evaluate(
@@ -53,51 +65,72 @@ def evaluate(
     emulator frame, 60 frames/s); without it they are spread over every core (other
     games, the same protocol). A run trained with logger = tensorboard+wandb also gets
     the saved final evaluation and the videos in its W&B run's summary."""
-    from dqnlab.run.evaluate import final_evaluation, final_evaluation_record, final_network
-    from dqnlab.run.rundir import load_final_evaluation, record_final_evaluation
+    from dqnlab.run.evaluate import final_evaluation_record, final_network
     from dqnlab.run.wandb_log import add_to_summary, final_evaluation_values, video_media
 
     protocol_network = final_network(run_dir)
     checkpoint = checkpoint or protocol_network
-    videos: list[Path] = []
-    if video is None:
-        result, network = final_evaluation(
-            run_dir, checkpoint, episodes, seed, resolve_device(device)
-        )
-    else:
-        from dqnlab.analysis.video import filmed_final_evaluation
-
-        recording, network = filmed_final_evaluation(
-            run_dir, checkpoint, episodes, seed, resolve_device(device), video, video_format
-        )
-        videos = recording.paths
-        for file in videos:
-            typer.echo(f"dqnlab: wrote {file}")
-        if recording.note:
-            typer.echo(f"dqnlab: {recording.video_format.upper()}: {recording.note}")
-        result = recording.result
+    result, network, videos = _play_final_evaluation(
+        run_dir, checkpoint, episodes, seed, device, video=video, video_format=video_format
+    )
     config = network.config
     typer.echo(
         f"{config.env}: {result.mean:.2f} ± {result.std:.2f} over {len(result.scores)} games "
         f"({network.path}, {result.frames} frames at {result.frames_per_second:.0f} frames/s)"
     )
     record = final_evaluation_record(result, config, network.path, network.step, seed)
-    written = False
-    if checkpoint == protocol_network:
-        path, written = record_final_evaluation(run_dir, record)
-        if written:
-            typer.echo(f"dqnlab: saved as {path}")
-        else:
-            saved = load_final_evaluation(run_dir) or {}
-            typer.echo(
-                f"dqnlab: kept {path}: it holds {saved.get('episodes')} games of this network"
-            )
+    written = _save_final_evaluation(run_dir, record) if checkpoint == protocol_network else False
     if checkpoint in ("best", "last"):  # the run's own network: to its W&B run, if it has one
         values = final_evaluation_values(record) if written else {}
         if add_to_summary(run_dir, values, video_media(checkpoint, videos)):
             typer.echo("dqnlab: sent to the run's W&B summary")
     if json_path:
         write_json(json_path, record)
+
+
+def _play_final_evaluation(
+    run_dir: Path,
+    checkpoint: str,
+    episodes: int | None,
+    seed: int,
+    device: str,
+    *,
+    video: Path | None,
+    video_format: str,
+) -> tuple[EvaluationResult, EvaluatedNetwork, list[Path]]:
+    """The final evaluation's games of `checkpoint`, filmed into the directory `video` unless
+    it is None: the result, the network and the videos (each one's path printed)."""
+    if video is None:
+        from dqnlab.run.evaluate import final_evaluation
+
+        result, network = final_evaluation(
+            run_dir, checkpoint, episodes, seed, resolve_device(device)
+        )
+        return result, network, []
+    from dqnlab.analysis.video import filmed_final_evaluation
+
+    recording, network = filmed_final_evaluation(
+        run_dir, checkpoint, episodes, seed, resolve_device(device), video, video_format
+    )
+    for file in recording.paths:
+        typer.echo(f"dqnlab: wrote {file}")
+    if recording.note:
+        typer.echo(f"dqnlab: {recording.video_format.upper()}: {recording.note}")
+    return recording.result, network, recording.paths
+
+
+def _save_final_evaluation(run_dir: Path, record: dict[str, Any]) -> bool:
+    """Save `record` as the run's final evaluation unless the saved one holds more games of
+    the same network; whether it was saved."""
+    from dqnlab.run.rundir import load_final_evaluation, record_final_evaluation
+
+    path, written = record_final_evaluation(run_dir, record)
+    if written:
+        typer.echo(f"dqnlab: saved as {path}")
+    else:
+        saved = load_final_evaluation(run_dir) or {}
+        typer.echo(f"dqnlab: kept {path}: it holds {saved.get('episodes')} games of this network")
+    return written
 
 
 def report(
@@ -114,20 +147,8 @@ def report(
     ] = None,
     frames: Annotated[int, typer.Option(help="Frames of each run's Q-value figures (0: none)")] = 4,
     device: Device = "auto",
-    reference: Annotated[
-        str,
-        typer.Option(
-            help="dopamine: Dopamine's published curves behind Atari games' and the "
-            "on-track table; der-paper: the Atari 100k table against Data-Efficient "
-            "Rainbow's published scores, which join the aggregates; none"
-        ),
-    ] = "dopamine",
-    baseline: Annotated[
-        str,
-        typer.Option(
-            help="Human score of the aggregates across games: human (dqn_zoo's) or human_nature (the Nature paper's tester)"
-        ),
-    ] = "human",
+    reference: Annotated[str, typer.Option(help=REFERENCE_HELP)] = "dopamine",
+    baseline: Annotated[str, typer.Option(help=BASELINE_HELP)] = "human",
     # The defaults of aggregate.AggregateSettings, not imported here (the report package
     # imports torch); tests/analysis/report/test_aggregate.py checks that they agree.
     bootstrap_reps: Annotated[
@@ -163,11 +184,16 @@ def report(
     if episodes is not None and episodes <= 0:
         raise DqnlabError(f"--episodes {episodes} must be positive")
     if out is None:
-        from dqnlab.run.rundir import is_run_dir
-
-        one_sweep = len(run_dirs) == 1 and not is_run_dir(run_dirs[0])
-        out = run_dirs[0] / "report" if one_sweep else Path("report")
+        out = _report_dir(run_dirs)
     report_runs(run_dirs, out, episodes, device, frames, reference, aggregate)
+
+
+def _report_dir(run_dirs: list[Path]) -> Path:
+    """SWEEP/report for one sweep directory, else ./report."""
+    from dqnlab.run.rundir import is_run_dir
+
+    one_sweep = len(run_dirs) == 1 and not is_run_dir(run_dirs[0])
+    return run_dirs[0] / "report" if one_sweep else Path("report")
 
 
 def report_runs(

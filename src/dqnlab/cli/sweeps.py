@@ -6,13 +6,16 @@ from __future__ import annotations
 import sys
 from collections.abc import Callable
 from pathlib import Path
-from typing import Annotated, Any
+from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
 
 from dqnlab.cli.common import ENV_HELP, Device, EnvKwargs, Wrappers, resolve_device, write_json
 from dqnlab.cli.results import report_runs
 from dqnlab.errors import DqnlabError
+
+if TYPE_CHECKING:
+    from dqnlab.sweeps.plan import SweepPlan
 
 # Options `dqnlab sweep` and `dqnlab ablate` share.
 VARY_HELP = (
@@ -27,19 +30,17 @@ BasePreset = Annotated[
 ]
 FirstSeed = Annotated[int, typer.Option(help="The first seed")]
 RunSteps = Annotated[int | None, typer.Option(help="Training budget of each run in agent steps")]
+GAMES_HELP = (
+    "A game set instead of --env: nature49, atari57, atari100k (the Atari 100k benchmark's 26), "
+    "or a file of games (one a line)"
+)
 
 
 def sweep(
     env: Annotated[
         str | None, typer.Option(help="Environments, comma-separated: pong,breakout or CartPole-v1")
     ] = None,
-    games: Annotated[
-        str | None,
-        typer.Option(
-            help="A game set instead of --env: nature49, atari57, atari100k (the Atari 100k "
-            "benchmark's 26), or a file of games (one a line)"
-        ),
-    ] = None,
+    games: Annotated[str | None, typer.Option(help=GAMES_HELP)] = None,
     preset: BasePreset = None,
     seeds: Annotated[int, typer.Option(help="Seeds per game and setting: SEED, SEED+1, ...")] = 1,
     seed: FirstSeed = 0,
@@ -83,10 +84,7 @@ def sweep(
     A run whose process or node dies is retried on any node and resumes from its newest
     checkpoint. Running the same command again skips finished runs and resumes the others;
     Ctrl-C stops every run after a checkpoint. `dqnlab status SWEEP_DIR` shows where it stands."""
-    from dqnlab.sweeps.cluster import connected, node_resources
-    from dqnlab.sweeps.driver import run_sweep_on_ray
     from dqnlab.sweeps.plan import plan_sweep_options
-    from dqnlab.sweeps.resources import check_resources
 
     plan = plan_sweep_options(
         env=env, games=games, preset=preset, seeds=seeds, first_seed=seed, vary=vary or [],
@@ -94,9 +92,20 @@ def sweep(
         gpus_per_run=gpus_per_run, memory_per_run_gb=memory_per_run, max_retries=max_retries,
         env_kwargs=env_kwarg or [], wrappers=wrapper or [],
     )  # fmt: skip
-    resources = plan.resources
     for warning in plan.warnings:
         typer.echo(f"dqnlab: warning: {warning}", err=True)
+    _train_on_ray(plan, address, max_retries)
+    _report_sweep(plan.sweep, episodes, "cpu", report)
+
+
+def _train_on_ray(plan: SweepPlan, address: str, max_retries: int) -> None:
+    """Train the planned runs on the Ray cluster at `address`, once `check_resources` finds
+    room for a run on it."""
+    from dqnlab.sweeps.cluster import connected, node_resources
+    from dqnlab.sweeps.driver import run_sweep_on_ray
+    from dqnlab.sweeps.resources import check_resources
+
+    resources = plan.resources
     with connected(address):
         check_resources(resources, node_resources())
         typer.echo(
@@ -114,7 +123,6 @@ def sweep(
                 live=sys.stdout.isatty(),
             )
         )
-    _report_sweep(plan.sweep, episodes, "cpu", report)
 
 
 def ablate(

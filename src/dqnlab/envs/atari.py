@@ -179,16 +179,7 @@ class AtariEnv:
             raise EnvError(f"unknown Atari game {game!r}")
         if frame_pooling not in FRAME_POOLINGS:
             raise ValueError(f"frame_pooling {frame_pooling!r} is not one of {FRAME_POOLINGS}")
-        ALEInterface.setLoggerMode(LoggerMode.Error)
-        self.ale = ALEInterface()
-        self.ale.setInt("random_seed", int(seed) % (2**31))
-        self.ale.setFloat("repeat_action_probability", float(sticky_action_probability))
-        self.ale.setInt("frame_skip", 1)  # the repeat is done here, to pool and watch lives
-        self.ale.setInt("max_num_frames_per_episode", 0)  # the cap is applied here
-        rom = roms.get_rom_path(game)
-        if rom is None:  # game_names() lists only the ROMs ale-py ships
-            raise EnvError(f"ale-py ships no ROM for {game!r}")
-        self.ale.loadROM(rom)
+        self.ale = _emulator(game, seed, sticky_action_probability)
         actions = (
             self.ale.getLegalActionSet() if full_action_space else self.ale.getMinimalActionSet()
         )
@@ -333,6 +324,21 @@ class AtariEnv:
 
     def close(self) -> None:
         pass
+
+
+def _emulator(game: str, seed: int, sticky_action_probability: float) -> ALEInterface:
+    """ale-py's emulator with `game` loaded."""
+    ALEInterface.setLoggerMode(LoggerMode.Error)
+    ale = ALEInterface()
+    ale.setInt("random_seed", int(seed) % (2**31))
+    ale.setFloat("repeat_action_probability", float(sticky_action_probability))
+    ale.setInt("frame_skip", 1)  # `AtariEnv.step` repeats, to pool and watch lives
+    ale.setInt("max_num_frames_per_episode", 0)  # `AtariEnv.step` applies the cap
+    rom = roms.get_rom_path(game)
+    if rom is None:  # game_names() lists only the ROMs ale-py ships
+        raise EnvError(f"ale-py ships no ROM for {game!r}")
+    ale.loadROM(rom)
+    return ale
 
 
 class _EmulatorStateUnpickler(pickle.Unpickler):

@@ -46,7 +46,7 @@ import shutil
 import warnings
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeAlias
 
 import numpy as np
 import torch
@@ -92,6 +92,7 @@ _MANIFEST_SLACK_BYTES = 2**20
 _CHUNK_FILE = re.compile(r"([A-Za-z0-9_]+)\.(\d{5,})\.g(\d{9,})\.bin(\.tmp)?")
 _PARTIAL_PREFIX = ".partial-"
 _REPLACED_PREFIX = ".replaced-"
+_Plan: TypeAlias = "dict[str, list[_PlannedChunk]]"  # per replay array, per chunk
 
 
 @dataclass(frozen=True)
@@ -176,13 +177,12 @@ class CheckpointStore:
     ) -> Path:
         """Write a complete checkpoint of `step`; return its directory.
 
-        `arrays` are the replay arrays (same first dimension, the capacity; a
-        `ChunkedArray` is written chunk by chunk as it holds them); `changed_slots`
-        is the ring range [start, stop) of slots written since the last save or load of
-        this store (stop < start wraps around; start == stop is nothing; a list of them:
-        one per replay stream), None for all. A
-        store that has neither saved nor loaded counts from the arrays' creation: their
-        slots outside the range are zeros, and are not stored.
+        `arrays` are the replay arrays (same first dimension, the capacity; a `ChunkedArray`
+        is written chunk by chunk as it holds them); `changed_slots` is the ring range
+        [start, stop) of slots written since the last save or load of this store (stop <
+        start wraps around; start == stop is nothing; a list of them: one per replay stream),
+        None for all. A store that has neither saved nor loaded counts from the arrays'
+        creation: their slots outside the range are zeros, and are not stored.
         A failed save leaves the earlier checkpoints as they were and no files behind.
         """
         capacity = check_arrays(arrays)
@@ -191,35 +191,16 @@ class CheckpointStore:
         state_bytes = buffer.getbuffer()
         check_loadable(state_bytes)
         plan = self._plan(arrays, changed_slots, capacity)
-        needed = len(state_bytes) + _MANIFEST_SLACK_BYTES
-        needed += sum(
-            chunk_pieces(arrays[name], index, chunk.start, chunk.start + chunk.slots)[1]
-            for name, chunks in plan.items()
-            for index, chunk in enumerate(chunks)
-            if chunk.slots and chunk.reused is None
-        )
         created: list[Path] = []
         staging = self.directory / f"{_PARTIAL_PREFIX}step-{step:09d}"
         final = self.directory / f"step-{step:09d}"
         replaced = self.directory / f"{_REPLACED_PREFIX}step-{step:09d}"
         try:
             self.replay_directory.mkdir(parents=True, exist_ok=True)
-            self._check_free_space(step, needed)
+            self._check_free_space(step, len(state_bytes), arrays, plan)
             shutil.rmtree(staging, ignore_errors=True)
             generation = self._next_generation()
-            records = {
-                name: ArrayRecord(
-                    dtype=arrays[name].dtype.str,
-                    shape=tuple(arrays[name].shape),
-                    chunk_slots=chunk_slots_of(arrays[name], self.chunk_slots),
-                    chunks=tuple(
-                        self._store_chunk(arrays[name], name, index, chunk, generation, created)
-                        for index, chunk in enumerate(chunks)
-                    ),
-                )
-                for name, chunks in plan.items()
-            }
-            fsync_directory(self.replay_directory)
+            records = self._store_arrays(arrays, plan, generation, created)
             staging.mkdir()
             created.append(staging)
             manifest = Manifest(
@@ -232,18 +213,9 @@ class CheckpointStore:
             )
             write_file(staging / MANIFEST_FILE, [memoryview(manifest.to_json())], created)
             fsync_directory(staging)
-            if final.exists():  # saved twice at one step: replace it
-                shutil.rmtree(replaced, ignore_errors=True)
-                os.replace(final, replaced)
-            os.replace(staging, final)
-            created.append(final)
-            fsync_directory(self.directory)
+            self._publish(staging, final, replaced, created)
         except BaseException as error:
-            for path in reversed(created):
-                remove_quietly(path)
-            if replaced.exists() and not final.exists():
-                with contextlib.suppress(OSError):
-                    os.replace(replaced, final)
+            self._undo_save(created, final, replaced)
             if isinstance(error, OSError):
                 raise DqnlabError(
                     f"could not write the checkpoint of step {step} in {self.directory}: "
@@ -252,16 +224,26 @@ class CheckpointStore:
                 ) from error
             raise
         self._base = manifest
-        try:
-            self._prune(step)
-        except OSError as error:
-            warnings.warn(
-                f"checkpoint of step {step} is complete, but removing old checkpoints in "
-                f"{self.directory} failed: {error}",
-                CheckpointWarning,
-                stacklevel=2,
-            )
+        self._prune_or_warn(step)
         return final
+
+    def _store_arrays(
+        self, arrays: Arrays, plan: _Plan, generation: int, created: list[Path]
+    ) -> dict[str, ArrayRecord]:
+        records = {
+            name: ArrayRecord(
+                dtype=arrays[name].dtype.str,
+                shape=tuple(arrays[name].shape),
+                chunk_slots=chunk_slots_of(arrays[name], self.chunk_slots),
+                chunks=tuple(
+                    self._store_chunk(arrays[name], name, index, chunk, generation, created)
+                    for index, chunk in enumerate(chunks)
+                ),
+            )
+            for name, chunks in plan.items()
+        }
+        fsync_directory(self.replay_directory)
+        return records
 
     def _store_chunk(
         self,
@@ -282,9 +264,7 @@ class CheckpointStore:
             record = replace(record, slots=chunk.slots)
         return record
 
-    def _plan(
-        self, arrays: Arrays, changed_slots: WrittenSlots, capacity: int
-    ) -> dict[str, list[_PlannedChunk]]:
+    def _plan(self, arrays: Arrays, changed_slots: WrittenSlots, capacity: int) -> _Plan:
         """Per array, per chunk: the slots to store and the earlier file to reuse.
 
         Only slots that may hold something other than zeros are stored: those the earlier
@@ -295,16 +275,13 @@ class CheckpointStore:
         to nearly nothing). A file is reused when no slot of its chunk changed and it has
         the chunk's current encoding (a chunk compressed since is written again,
         compressed)."""
-        plan: dict[str, list[_PlannedChunk]] = {}
+        plan: _Plan = {}
         for name, array in arrays.items():
             chunk_slots = chunk_slots_of(array, self.chunk_slots)
             extents = changed_extents(changed_slots, capacity, chunk_slots)
             base = self._base.arrays.get(name) if self._base is not None else None
-            if base is not None and (base.dtype, base.shape, base.chunk_slots) != (
-                array.dtype.str,
-                tuple(array.shape),
-                chunk_slots,
-            ):
+            layout = (array.dtype.str, tuple(array.shape), chunk_slots)
+            if base is not None and (base.dtype, base.shape, base.chunk_slots) != layout:
                 base = None
             # Every chunk whole: all slots changed, or the earlier checkpoint has no record
             # of this array to tell which slots are zeros.
@@ -334,7 +311,32 @@ class CheckpointStore:
             plan[name] = chunks
         return plan
 
-    def _check_free_space(self, step: int, needed: int) -> None:
+    def _publish(self, staging: Path, final: Path, replaced: Path, created: list[Path]) -> None:
+        if final.exists():  # saved twice at one step: replace it
+            shutil.rmtree(replaced, ignore_errors=True)
+            os.replace(final, replaced)
+        os.replace(staging, final)
+        created.append(final)
+        fsync_directory(self.directory)
+
+    @staticmethod
+    def _undo_save(created: list[Path], final: Path, replaced: Path) -> None:
+        """Remove what a failed save wrote; put back the checkpoint it was replacing."""
+        for path in reversed(created):
+            remove_quietly(path)
+        if replaced.exists() and not final.exists():
+            with contextlib.suppress(OSError):
+                os.replace(replaced, final)
+
+    def _check_free_space(self, step: int, state_size: int, arrays: Arrays, plan: _Plan) -> None:
+        """Room for the state, the manifest and the chunk files that are not reused."""
+        needed = state_size + _MANIFEST_SLACK_BYTES
+        needed += sum(
+            chunk_pieces(arrays[name], index, chunk.start, chunk.start + chunk.slots)[1]
+            for name, chunks in plan.items()
+            for index, chunk in enumerate(chunks)
+            if chunk.slots and chunk.reused is None
+        )
         free = shutil.disk_usage(self.directory).free
         if needed > free:
             raise ResourceError(
@@ -353,6 +355,17 @@ class CheckpointStore:
             if match:
                 latest = max(latest, int(match.group(3)))
         return latest + 1
+
+    def _prune_or_warn(self, saved_step: int) -> None:
+        try:
+            self._prune(saved_step)
+        except OSError as error:
+            warnings.warn(
+                f"checkpoint of step {saved_step} is complete, but removing old checkpoints in "
+                f"{self.directory} failed: {error}",
+                CheckpointWarning,
+                stacklevel=3,
+            )
 
     def _prune(self, saved_step: int) -> None:
         """Keep the newest `keep` complete checkpoints up to `saved_step`; delete the rest.

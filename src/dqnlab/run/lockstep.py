@@ -162,18 +162,7 @@ def play_games(
     steps them itself). While they step one half, the player acts for the other with one
     torch thread, leaving the cores to them; the thread count is restored afterwards.
     """
-    if episodes <= 0:
-        raise ValueError(f"episodes must be positive, got {episodes}")
-    if max_steps is not None and max_steps <= 0:
-        raise ValueError(f"max_steps must be positive, got {max_steps}")
-    if num_envs is None:
-        num_envs = default_num_envs(episodes)
-    if workers is None:  # one environment cannot overlap with acting: no process to talk to
-        workers = default_workers(config) if num_envs > 1 else 0
-    if num_envs <= 0 or workers < 0:
-        raise ValueError(f"num_envs ({num_envs}) must be positive and workers ({workers}) >= 0")
-    num_envs = min(num_envs, episodes)
-    workers = min(workers, num_envs)
+    num_envs, workers = _checked_counts(config, episodes, max_steps, num_envs, workers)
     seeds = derive_seeds(seed, num_envs)
     games = [len(range(i, episodes, num_envs)) for i in range(num_envs)]
     half = (num_envs + 1) // 2
@@ -199,6 +188,26 @@ def play_games(
         result = _lockstep_play(agent, stepper, acting, epsilon, episodes, max_steps)
     result.num_envs, result.workers = num_envs, workers
     return result
+
+
+def _checked_counts(
+    config: Config, episodes: int, max_steps: int | None, num_envs: int | None, workers: int | None
+) -> tuple[int, int]:
+    """`play_games`' numbers of environments and workers, defaults filled in, at most one
+    environment per game and one worker per environment; a ValueError for a count out of
+    range (`max_steps` included)."""
+    if episodes <= 0:
+        raise ValueError(f"episodes must be positive, got {episodes}")
+    if max_steps is not None and max_steps <= 0:
+        raise ValueError(f"max_steps must be positive, got {max_steps}")
+    if num_envs is None:
+        num_envs = default_num_envs(episodes)
+    if workers is None:  # one environment cannot overlap with acting: no process to talk to
+        workers = default_workers(config) if num_envs > 1 else 0
+    if num_envs <= 0 or workers < 0:
+        raise ValueError(f"num_envs ({num_envs}) must be positive and workers ({workers}) >= 0")
+    num_envs = min(num_envs, episodes)
+    return num_envs, min(workers, num_envs)
 
 
 def _lockstep_play(

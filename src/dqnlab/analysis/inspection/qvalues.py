@@ -317,33 +317,11 @@ def compare_networks(
     best, best_agent, best_config = load_network(
         "best", network_path(run_dir, "best", config), device, seed
     )
-    env_seed = derive_seeds(seed, 2)[0]
-    assert best_agent.input_shape is not None and best_agent.observation_dtype is not None
     assert best_agent.action_names is not None
     action_names = best_agent.action_names
-    shape, dtype = best_agent.input_shape[1:], best_agent.observation_dtype
-
-    screens: np.ndarray | None
-    game_steps: list[int] | None
-    if observations is not None:
-        inputs = load_observations(observations, best_config.history_length, shape, dtype)
-        screens = _screens_beside(observations, len(inputs))
-        game_steps = None
-        note = f"{len(inputs)} observations from {observations}"
-    else:
-        picked = pick_frames(
-            best_agent, best_config, frames, env_seed, max_game_steps=max_game_steps
-        )
-        inputs, screens, game_steps = picked.observations, picked.screens, picked.game_steps
-        extent = (
-            f"its {picked.steps_played} steps"
-            if picked.game_ended
-            else f"its first {picked.steps_played} steps (it went on)"
-        )
-        note = (
-            f"{len(inputs)} frames evenly spread over {extent} of the first evaluation game of "
-            f"the best network (seed {seed}, epsilon {best_config.eval_epsilon:g})"
-        )
+    inputs, screens, game_steps, note = _inputs_to_compare(
+        best_agent, best_config, observations, frames, seed, max_game_steps
+    )
 
     networks: list[InspectedNetwork] = []
     q_values = []
@@ -367,6 +345,37 @@ def compare_networks(
         note=note,
         layout=best_agent.observation_layout,
     )
+
+
+def _inputs_to_compare(
+    agent: Agent,
+    config: Config,
+    observations: Path | None,
+    frames: int,
+    seed: int,
+    max_game_steps: int,
+) -> tuple[np.ndarray, np.ndarray | None, list[int] | None, str]:
+    """The network inputs, their screens and game steps where known, and a note saying
+    where they come from: those saved in `observations`, else frames picked from the first
+    evaluation game that `agent` plays (`pick_frames`)."""
+    env_seed = derive_seeds(seed, 2)[0]
+    assert agent.input_shape is not None and agent.observation_dtype is not None
+    shape, dtype = agent.input_shape[1:], agent.observation_dtype
+    if observations is not None:
+        inputs = load_observations(observations, config.history_length, shape, dtype)
+        note = f"{len(inputs)} observations from {observations}"
+        return inputs, _screens_beside(observations, len(inputs)), None, note
+    picked = pick_frames(agent, config, frames, env_seed, max_game_steps=max_game_steps)
+    extent = (
+        f"its {picked.steps_played} steps"
+        if picked.game_ended
+        else f"its first {picked.steps_played} steps (it went on)"
+    )
+    note = (
+        f"{len(picked.observations)} frames evenly spread over {extent} of the first "
+        f"evaluation game of the best network (seed {seed}, epsilon {config.eval_epsilon:g})"
+    )
+    return picked.observations, picked.screens, picked.game_steps, note
 
 
 def _screens_beside(observations: Path, count: int) -> np.ndarray | None:

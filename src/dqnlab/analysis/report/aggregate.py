@@ -171,23 +171,7 @@ def score_matrices(
     the same number of runs, the smallest a game has, keeping the runs of lowest seed.
     No matrices (and a note) when fewer than two games remain."""
     notes: list[str] = []
-    unscored: list[str] = []
-    # configuration -> game -> (seed, run directory, score) of the runs with a final evaluation
-    cells: dict[str, dict[str, list[tuple[int, Path, float]]]] = {}
-    for group in groups:
-        reference = references.get(group.env)
-        human = getattr(reference, baseline) if reference is not None else None
-        runs = [run for run in group.runs if run.final_evaluation is not None]
-        if reference is None or human is None:
-            if runs and group.env not in unscored:
-                unscored.append(group.env)
-            continue
-        for run in runs:
-            assert run.final_evaluation is not None
-            score = human_normalised(float(run.final_evaluation["mean"]), reference.random, human)
-            assert score is not None
-            by_game = cells.setdefault(group.label, {})
-            by_game.setdefault(group.env, []).append((run.config.seed, run.run_dir, score))
+    cells, unscored = _normalised_scores(groups, references, baseline)
     name = BASELINE_NAMES[baseline]
     if unscored:
         notes.append(
@@ -225,27 +209,63 @@ def score_matrices(
         return (), {}, notes
     matrices = {}
     for configuration, by_game in cells.items():
-        seeds = min(len(by_game[game]) for game in games)
-        left_out = []
-        columns = []
-        for game in games:
-            by_seed = sorted(by_game[game], key=lambda cell: cell[0])  # stable: ties keep order
-            columns.append([score for _, _, score in by_seed[:seeds]])
-            left_out += [str(run_dir) for _, run_dir, _ in by_seed[seeds:]]
-        if left_out:
-            notes.append(
-                f"aggregates across games, {configuration}: its games have different numbers "
-                f"of seeds and rliable's bootstrap takes a runs x games matrix, so each game "
-                f"keeps its {seeds} run(s) of lowest seed: left out {', '.join(left_out)}"
-            )
-        if seeds == 1:
-            notes.append(
-                f"aggregates across games, {configuration}: one seed per game, so its "
-                "intervals resample the games (how much the aggregate depends on which games "
-                "were played), not the runs (how it would vary with new seeds)"
-            )
-        matrices[configuration] = np.array(columns).T
+        matrices[configuration] = _runs_by_games(configuration, by_game, games, notes)
     return games, matrices, notes
+
+
+# Per game: (seed, run directory, score) of a configuration's runs with a final evaluation.
+_ByGame = dict[str, list[tuple[int, Path, float]]]
+
+
+def _normalised_scores(
+    groups: Sequence[Group], references: Mapping[str, ReferenceScores], baseline: str
+) -> tuple[dict[str, _ByGame], list[str]]:
+    """Per configuration, the human-normalised final-evaluation mean of every run that has
+    one; and the games of the runs that have no score under `baseline` (left out)."""
+    unscored: list[str] = []
+    cells: dict[str, _ByGame] = {}
+    for group in groups:
+        reference = references.get(group.env)
+        human = getattr(reference, baseline) if reference is not None else None
+        runs = [run for run in group.runs if run.final_evaluation is not None]
+        if reference is None or human is None:
+            if runs and group.env not in unscored:
+                unscored.append(group.env)
+            continue
+        for run in runs:
+            assert run.final_evaluation is not None
+            score = human_normalised(float(run.final_evaluation["mean"]), reference.random, human)
+            assert score is not None
+            by_game = cells.setdefault(group.label, {})
+            by_game.setdefault(group.env, []).append((run.config.seed, run.run_dir, score))
+    return cells, unscored
+
+
+def _runs_by_games(
+    configuration: str, by_game: _ByGame, games: Sequence[str], notes: list[str]
+) -> np.ndarray:
+    """One configuration's runs x games matrix: each game's runs of lowest seed, as many as
+    the game with fewest has; notes on the runs left out and on a single seed."""
+    seeds = min(len(by_game[game]) for game in games)
+    left_out = []
+    columns = []
+    for game in games:
+        by_seed = sorted(by_game[game], key=lambda cell: cell[0])  # stable: ties keep order
+        columns.append([score for _, _, score in by_seed[:seeds]])
+        left_out += [str(run_dir) for _, run_dir, _ in by_seed[seeds:]]
+    if left_out:
+        notes.append(
+            f"aggregates across games, {configuration}: its games have different numbers "
+            f"of seeds and rliable's bootstrap takes a runs x games matrix, so each game "
+            f"keeps its {seeds} run(s) of lowest seed: left out {', '.join(left_out)}"
+        )
+    if seeds == 1:
+        notes.append(
+            f"aggregates across games, {configuration}: one seed per game, so its "
+            "intervals resample the games (how much the aggregate depends on which games "
+            "were played), not the runs (how it would vary with new seeds)"
+        )
+    return np.array(columns).T
 
 
 def aggregate_scores(

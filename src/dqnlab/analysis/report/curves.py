@@ -19,7 +19,7 @@ from dqnlab.analysis.report.reference import (
     WINDOW_FRAMES,
     ReferenceCurve,
 )
-from dqnlab.analysis.report.runs import Group, PeriodicEvaluation
+from dqnlab.analysis.report.runs import Group, PeriodicEvaluation, RunResults
 
 
 @dataclass(frozen=True)
@@ -126,6 +126,41 @@ def _means_at(
     return tuple(float(np.mean(values[step])) if step in values else None for step in steps)
 
 
+def curve_notes(
+    runs: Sequence[RunResults], groups: Sequence[Group], curves: Sequence[Curve]
+) -> list[str]:
+    """What the report says of the curves: the runs that have none and why, the
+    evaluations that finished no game, the games with no figure."""
+    notes = []
+    unevaluated = [run for run in runs if run.config.eval_period_steps == 0]
+    if unevaluated:
+        notes.append(
+            f"{len(unevaluated)} run(s) with eval_period_steps = 0 (Atari 100k's protocol "
+            "scores the last network alone): no periodic evaluation, no learning curve"
+        )
+    for group in groups:
+        for run in group.runs:
+            if run.config.eval_period_steps == 0:
+                continue
+            if not run.evaluations:
+                notes.append(
+                    f"{run.run_dir}: no periodic evaluation yet (evaluations.csv has no "
+                    "rows): it has no learning curve"
+                )
+            elif any(point.episodes == 0 for point in run.evaluations):
+                empty = sum(point.episodes == 0 for point in run.evaluations)
+                notes.append(
+                    f"{run.run_dir}: {empty} periodic evaluation(s) finished no game within "
+                    "eval_steps; the curve shows 0 there (DeepMind's Lua convention)"
+                )
+    evaluated_periodically = [g for g in groups if any(r.config.eval_period_steps for r in g.runs)]
+    games = list(dict.fromkeys(group.env for group in evaluated_periodically))
+    for game in games:
+        if not any(curve.game == game for curve in curves):
+            notes.append(f"{game}: no run has a periodic evaluation yet: no figure")
+    return notes
+
+
 def curve_figure(curve: Curve) -> Figure:
     """The figure of one game: mean score of the periodic evaluations against training
     steps (bottom) and frames (top), a line per configuration, shaded min–max over seeds;
@@ -139,54 +174,14 @@ def curve_figure(curve: Curve) -> Figure:
         )
     else:
         axes = figure.add_subplot()
-    colors = {}
-    for series in curve.series:
-        (line,) = axes.plot(
-            series.steps,
-            series.mean,
-            marker="o" if len(series.steps) <= 30 else None,
-            markersize=3,
-            label=series.legend_label,
-        )
-        colors[series.label] = line.get_color()
-        if series.low is not None and series.high is not None:
-            axes.fill_between(
-                series.steps,
-                series.low,
-                series.high,
-                color=line.get_color(),
-                alpha=0.2,
-                linewidth=0,
-            )
+    colors = _draw_series(axes, curve)
     for reference in curve.references.values():
         _draw_reference(axes, curve, reference)
     axes.set_title(curve.game)
     axes.set_ylabel("mean score per game (periodic evaluation)")
     bottom = axes
     if heldout:
-        for panel, name, label in (
-            (q_axes, "heldout_max_q", "held-out mean max Q"),
-            (td_axes, "heldout_td_error", "held-out mean |TD error|"),
-        ):
-            for series in heldout:
-                points = [
-                    (step, value)
-                    for step, value in zip(series.steps, getattr(series, name), strict=True)
-                    if value is not None
-                ]
-                panel.plot(
-                    [step for step, _ in points],
-                    [value for _, value in points],
-                    marker="o" if len(points) <= 30 else None,
-                    markersize=3,
-                    color=colors[series.label],
-                )
-            panel.set_ylabel(label, fontsize="small")
-            panel.grid(alpha=0.3)
-        q_axes.set_title(
-            "Nature Fig. 2: held-out transitions drawn once at replay start (Lua valid_size)",
-            fontsize="small",
-        )
+        _draw_heldout(q_axes, td_axes, heldout, colors)
         bottom = td_axes
     bottom.set_xlabel("training steps (agent decisions)")
     bottom.xaxis.set_major_formatter(FuncFormatter(lambda value, _: _count_text(value)))
@@ -211,6 +206,61 @@ def curve_figure(curve: Curve) -> Figure:
         loc="best",
     )
     return figure
+
+
+def _draw_series(axes: Any, curve: Curve) -> dict[str, str]:
+    """Each configuration's mean line and, with several seeds, its min–max band; the colour
+    of each configuration's line."""
+    colors = {}
+    for series in curve.series:
+        (line,) = axes.plot(
+            series.steps,
+            series.mean,
+            marker="o" if len(series.steps) <= 30 else None,
+            markersize=3,
+            label=series.legend_label,
+        )
+        colors[series.label] = line.get_color()
+        if series.low is not None and series.high is not None:
+            axes.fill_between(
+                series.steps,
+                series.low,
+                series.high,
+                color=line.get_color(),
+                alpha=0.2,
+                linewidth=0,
+            )
+    return colors
+
+
+def _draw_heldout(
+    q_axes: Any, td_axes: Any, heldout: Sequence[CurveSeries], colors: dict[str, str]
+) -> None:
+    """Nature Fig. 2's held-out mean max-Q and mean |TD error| of each series that logged
+    them, in its line's colour, where it logged them."""
+    for panel, name, label in (
+        (q_axes, "heldout_max_q", "held-out mean max Q"),
+        (td_axes, "heldout_td_error", "held-out mean |TD error|"),
+    ):
+        for series in heldout:
+            points = [
+                (step, value)
+                for step, value in zip(series.steps, getattr(series, name), strict=True)
+                if value is not None
+            ]
+            panel.plot(
+                [step for step, _ in points],
+                [value for _, value in points],
+                marker="o" if len(points) <= 30 else None,
+                markersize=3,
+                color=colors[series.label],
+            )
+        panel.set_ylabel(label, fontsize="small")
+        panel.grid(alpha=0.3)
+    q_axes.set_title(
+        "Nature Fig. 2: held-out transitions drawn once at replay start (Lua valid_size)",
+        fontsize="small",
+    )
 
 
 def _draw_reference(axes: Any, curve: Curve, reference: ReferenceCurve) -> None:

@@ -45,7 +45,7 @@ from dqnlab.analysis.report.atari100k import (
     protocol_notes,
     published_matrix,
 )
-from dqnlab.analysis.report.curves import curve_figure, learning_curves
+from dqnlab.analysis.report.curves import curve_figure, curve_notes, learning_curves
 from dqnlab.analysis.report.reference import (
     REFERENCES,
     group_references,
@@ -139,19 +139,7 @@ def build_report(
     if reference not in REFERENCES:
         raise DqnlabError(f"--reference {reference!r} is not one of: {', '.join(REFERENCES)}")
     runs = [load_run(path) for path in find_runs(run_dirs)]
-    notes: list[str] = []
-    for run in runs:
-        if _scored_when_finished(run):
-            notes.append(
-                f"{run.run_dir}: training (newest checkpoint at step {run.steps} of "
-                f"{run.config.total_steps}): its protocol scores the last network once "
-                "trained, so it is not in the tables yet"
-            )
-        elif not run.finished:
-            notes.append(
-                f"{run.run_dir}: unfinished (newest checkpoint at step {run.steps} of "
-                f"{run.config.total_steps}): its scores are of its best network so far"
-            )
+    notes = _training_notes(runs)
     evaluated = _complete_final_evaluations(runs, evaluate_missing, echo, notes)
     groups = group_runs(runs)
     notes.extend(_group_notes(groups))
@@ -169,32 +157,7 @@ def build_report(
         notes.extend(_add_published_der(matrices, aggregate_games, settings.baseline))
     aggregates = aggregate_statistics(matrices, aggregate_games, settings) if matrices else None
     curves = learning_curves(groups)
-    unevaluated = [run for run in runs if run.config.eval_period_steps == 0]
-    if unevaluated:
-        notes.append(
-            f"{len(unevaluated)} run(s) with eval_period_steps = 0 (Atari 100k's protocol "
-            "scores the last network alone): no periodic evaluation, no learning curve"
-        )
-    for group in groups:
-        for run in group.runs:
-            if run.config.eval_period_steps == 0:
-                continue
-            if not run.evaluations:
-                notes.append(
-                    f"{run.run_dir}: no periodic evaluation yet (evaluations.csv has no "
-                    "rows): it has no learning curve"
-                )
-            elif any(point.episodes == 0 for point in run.evaluations):
-                empty = sum(point.episodes == 0 for point in run.evaluations)
-                notes.append(
-                    f"{run.run_dir}: {empty} periodic evaluation(s) finished no game within "
-                    "eval_steps; the curve shows 0 there (DeepMind's Lua convention)"
-                )
-    evaluated_periodically = [g for g in groups if any(r.config.eval_period_steps for r in g.runs)]
-    games = list(dict.fromkeys(group.env for group in evaluated_periodically))
-    for game in games:
-        if not any(curve.game == game for curve in curves):
-            notes.append(f"{game}: no run has a periodic evaluation yet: no figure")
+    notes.extend(curve_notes(runs, groups, curves))
     on_track = []
     if reference == "dopamine":
         curves_by_agent = load_references(run.config for run in runs)
@@ -269,17 +232,7 @@ def write_report(
         report.files.extend(curve.files)
     if report.aggregates is not None:
         report.files.extend(_write_aggregates(report.aggregates, out_dir))
-    path = out_dir / RESULTS_CSV
-    _write_csv(path, [_result_record(row) for row in report.rows], RESULT_COLUMNS)
-    report.files.append(path)
-    if report.atari100k:
-        path = out_dir / ATARI100K_CSV
-        _write_csv(path, [atari100k_record(row) for row in report.atari100k], ATARI100K_COLUMNS)
-        report.files.append(path)
-    if report.summary:
-        path = out_dir / SUMMARY_CSV
-        _write_csv(path, [_summary_record(row) for row in report.summary], SUMMARY_COLUMNS)
-        report.files.append(path)
+    report.files.extend(_write_tables(report, out_dir))
     for old in earlier:
         if old not in report.files:
             old.unlink(missing_ok=True)
@@ -295,6 +248,22 @@ def write_report(
             shutil.rmtree(old_dir)
     send_to_wandb(report, echo)
     return report
+
+
+def _write_tables(report: Report, out_dir: Path) -> list[Path]:
+    """results.csv, and atari100k.csv and summary.csv where the report has their rows."""
+    path = out_dir / RESULTS_CSV
+    _write_csv(path, [_result_record(row) for row in report.rows], RESULT_COLUMNS)
+    paths = [path]
+    if report.atari100k:
+        path = out_dir / ATARI100K_CSV
+        _write_csv(path, [atari100k_record(row) for row in report.atari100k], ATARI100K_COLUMNS)
+        paths.append(path)
+    if report.summary:
+        path = out_dir / SUMMARY_CSV
+        _write_csv(path, [_summary_record(row) for row in report.summary], SUMMARY_COLUMNS)
+        paths.append(path)
+    return paths
 
 
 def send_to_wandb(report: Report, echo: Callable[[str], object] | None = None) -> None:
@@ -413,6 +382,24 @@ def _complete_final_evaluations(
             run.final_evaluation = evaluate_missing(run.run_dir)
             evaluated.append(run.run_dir)
     return evaluated
+
+
+def _training_notes(runs: Sequence[RunResults]) -> list[str]:
+    """A note for each run still training: how far it is and what its scores are of."""
+    notes = []
+    for run in runs:
+        if _scored_when_finished(run):
+            notes.append(
+                f"{run.run_dir}: training (newest checkpoint at step {run.steps} of "
+                f"{run.config.total_steps}): its protocol scores the last network once "
+                "trained, so it is not in the tables yet"
+            )
+        elif not run.finished:
+            notes.append(
+                f"{run.run_dir}: unfinished (newest checkpoint at step {run.steps} of "
+                f"{run.config.total_steps}): its scores are of its best network so far"
+            )
+    return notes
 
 
 def _scored_when_finished(run: RunResults) -> bool:
