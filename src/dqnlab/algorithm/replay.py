@@ -75,16 +75,13 @@ class ReplayMemory:
         streams: int = 1,
     ) -> None:
         """`device`: also keep the frames there and gather minibatches there (see the
-        module's docstring). `pin_memory`: the host minibatch buffer in page-locked memory,
-        for faster copies to a GPU (needs CUDA). `compression`: a codec for the host frames
-        (ignored for vector observations: `compresses`); `expected_frame_bytes`: the
-        measured compressed size of one of this game's frames, which the memory check may
-        count on (without it, the check asks for the raw size: see `replay_sizes.check_projection`).
-        `n_step` and `discount` (γ; 0.99 is the Config's default): the returns a sampled
-        transition sums (`dqnlab.algorithm.nstep`). `sampler`: how `sample` draws
-        (`dqnlab.algorithm.samplers`; uniform when None), bound to this replay here.
-        `streams`: rings of capacity // streams slots,
-        one per environment (`streams.py`; `add` says which)."""
+        module's docstring). `pin_memory`: the host minibatch buffer page-locked, for faster
+        copies to a GPU. `compression`: a codec for the host frames (not for vectors:
+        `compresses`); `expected_frame_bytes`: a compressed frame's measured size, which the
+        memory check may count on (else the raw size: `replay_sizes.check_projection`).
+        `n_step` and `discount` (γ): the returns a sampled transition sums (`nstep.py`).
+        `sampler`: how `sample` draws (`samplers.py`; uniform when None), bound here.
+        `streams`: rings of capacity // streams slots, one per environment (`streams.py`)."""
         if n_step < 1:
             raise ValueError(f"n_step = {n_step} must be at least 1")
         frame_dtype = np.dtype(frame_dtype)
@@ -111,10 +108,25 @@ class ReplayMemory:
         self.n_step = n_step
         self.discount = discount
         self._powers = discount_powers(discount, n_step)
+        self.device = device
+        self._allocate_storage(frame_dtype, compression, chunk_slots, streams)
+        self.rng = np.random.default_rng(seed)
+        self._offsets = np.arange(-history_length + 1, 2, dtype=np.int64)  # a window
+        self._history_offsets = self._offsets[:-1]
+        self._allocate_minibatches(frame_dtype, pin_memory)
+        self.sampler = sampler if sampler is not None else UniformSampler()
+        self.sampler.bind(self)
+
+    def _allocate_storage(
+        self, frame_dtype: np.dtype, compression: str, chunk_slots: int, streams: int
+    ) -> None:
+        """The ring's arrays, preallocated: the frames (raw, or compressed chunk by chunk),
+        actions, rewards, terminals and episode ends, and the frames' copy on `device`."""
+        capacity, frame_shape = self.capacity, self.frame_shape
         self.frames: np.ndarray | CompressedFrames
         if self.compressed:
             self.frames = CompressedFrames(
-                capacity, self.frame_shape, frame_dtype, compression, chunk_slots,
+                capacity, frame_shape, frame_dtype, compression, chunk_slots,
                 open_chunks=open_chunks(streams),
             )  # fmt: skip
         else:
@@ -123,22 +135,20 @@ class ReplayMemory:
         self.rewards = np.zeros(capacity, dtype=np.float32)
         self.terminals = np.zeros(capacity, dtype=np.bool_)
         self.is_last = np.zeros(capacity, dtype=np.bool_)
-        self.rng = np.random.default_rng(seed)
-        self._offsets = np.arange(-history_length + 1, 2, dtype=np.int64)  # a window
-        self._history_offsets = self._offsets[:-1]
         self._frames_view = None if self.compressed else torch.from_numpy(self.frames)
-        self.device = device
-        if device is not None:  # a copy of the frames, to gather minibatches there
+        if self.device is not None:  # a copy of the frames, to gather minibatches there
             torch_dtype = torch.from_numpy(np.zeros(0, dtype=frame_dtype)).dtype
             self._device_frames = torch.zeros(
-                (capacity, *frame_shape), dtype=torch_dtype, device=device
+                (capacity, *frame_shape), dtype=torch_dtype, device=self.device
             )
-        # Sampling buffers, reused by every call: room for the widest transition, of which
-        # one-step windows take the first batch_size * (history + 1) frames.
-        history = history_length
+
+    def _allocate_minibatches(self, frame_dtype: np.dtype, pin_memory: bool) -> None:
+        """Sampling buffers, reused by every call: room for the widest transition, of which
+        one-step windows take the first batch_size * (history + 1) frames."""
+        history, n_step = self.history_length, self.n_step
         self._buffers = MinibatchBuffers(
-            self.frame_shape, frame_dtype, history, batch_size,
-            history + 1 if n_step == 1 else 2 * history, discount, device, pin_memory,
+            self.frame_shape, frame_dtype, history, self.batch_size,
+            history + 1 if n_step == 1 else 2 * history, self.discount, self.device, pin_memory,
         )  # fmt: skip
         self._one_step = self._buffers.layout(history + 1, next_column=1)
         self._n_step = (
@@ -146,8 +156,6 @@ class ReplayMemory:
             if n_step == 1
             else self._buffers.layout(2 * history, next_column=history)
         )
-        self.sampler = sampler if sampler is not None else UniformSampler()
-        self.sampler.bind(self)
 
     @property
     def position(self) -> int:
