@@ -94,7 +94,7 @@ def test_a_count_set_otherwise_at_resume_wins_and_says_it_will_not_be_exact() ->
 def test_busy_cores_are_warned_of_only_for_several_threads_on_the_cpu(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
-    monkeypatch.setattr(determinism.os, "sched_getaffinity", lambda _: {0, 1})
+    monkeypatch.setattr(determinism, "usable_cores", lambda: 2)
     monkeypatch.setattr(determinism.os, "getloadavg", lambda: (2.1, 2.0, 1.0))
     warning = busy_cores_warning(2, CPU)
     assert warning is not None and "2.1 on 2 cores" in warning and "threads=1" in warning

@@ -86,7 +86,7 @@ def busy_cores_warning(threads: int, device: torch.device) -> str | None:
     ran tens of times slower than with one each (measured while building `num_envs`)."""
     if device.type != "cpu" or threads < 2 or not hasattr(os, "getloadavg"):
         return None
-    load, cores = os.getloadavg()[0], len(os.sched_getaffinity(0))
+    load, cores = os.getloadavg()[0], usable_cores()
     if load < cores - 0.5:
         return None
     return (
@@ -95,3 +95,10 @@ def busy_cores_warning(threads: int, device: torch.device) -> str | None:
         "with them can run many times slower; with another training beside it, give each "
         "--set threads=1"
     )
+
+
+def usable_cores() -> int:
+    """The cores this process may run on (its affinity where the OS has one)."""
+    if hasattr(os, "sched_getaffinity"):
+        return len(os.sched_getaffinity(0))
+    return os.cpu_count() or 1

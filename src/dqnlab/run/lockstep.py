@@ -12,7 +12,6 @@ releases it, but emulation is most of a step.
 from __future__ import annotations
 
 import contextlib
-import os
 import sys
 import time
 from collections.abc import Iterator
@@ -24,6 +23,7 @@ from dqnlab.algorithm.agent import Agent
 from dqnlab.config import Config, derive_seeds
 from dqnlab.envs import is_atari
 from dqnlab.envs.pool import FINISHED, NEW_EPISODE, RUNNING, EnvGroup, EnvWorkers, Lockstep
+from dqnlab.run.determinism import usable_cores
 from dqnlab.run.play import EvaluationResult
 
 
@@ -97,19 +97,13 @@ class _ActingBatch:
         return stepped
 
 
-def _cpu_count() -> int:
-    if hasattr(os, "sched_getaffinity"):
-        return len(os.sched_getaffinity(0))
-    return os.cpu_count() or 1
-
-
 def default_workers(config: Config) -> int:
     """One worker process per core for Atari games, none (the player steps) otherwise.
 
     A Gymnasium environment is usually cheaper to step than a message to a process, and
     it may be registered by the user's code, which a worker process would not have run.
     """
-    cores = _cpu_count()
+    cores = usable_cores()
     return cores if cores > 1 and is_atari(config.env) else 0
 
 
