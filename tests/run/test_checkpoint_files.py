@@ -8,15 +8,9 @@ from pathlib import Path
 
 import pytest
 
-from dqnlab.run.checkpoint_files import (
-    ArrayRecord,
-    FileRecord,
-    Incomplete,
-    Manifest,
-    changed_chunks,
-    read_verified,
-    write_file,
-)
+from dqnlab.run.checkpoint_chunks import changed_chunks
+from dqnlab.run.checkpoint_files import read_verified, write_file
+from dqnlab.run.checkpoint_manifest import ArrayRecord, FileRecord, Incomplete, Manifest
 
 
 def test_a_manifest_reads_back_and_catches_a_flipped_digit() -> None:

@@ -15,7 +15,7 @@ import torch
 from dqnlab.algorithm.compression import CompressedFrames
 from dqnlab.algorithm.replay import ReplayMemory
 from dqnlab.config import config_fingerprint, resolve_config
-from dqnlab.run import checkpoint_files
+from dqnlab.run import checkpoint_manifest
 from dqnlab.run import train as train_module
 from dqnlab.run.checkpoints import CheckpointStore, written_slots
 from dqnlab.run.rundir import prepare_run_dir
@@ -83,8 +83,8 @@ def replay_bytes_on_disk(run_dir: Path) -> int:
     return sum(path.stat().st_size for path in (run_dir / "checkpoints" / "replay").iterdir())
 
 
-def manifest(run_dir: Path, step: int) -> checkpoint_files.Manifest:
-    return checkpoint_files.read_manifest(run_dir / "checkpoints" / f"step-{step:09d}")
+def manifest(run_dir: Path, step: int) -> checkpoint_manifest.Manifest:
+    return checkpoint_manifest.read_manifest(run_dir / "checkpoints" / f"step-{step:09d}")
 
 
 def test_a_partly_filled_raw_replay_stores_its_filled_slots_only(tmp_path: Path) -> None:
@@ -166,13 +166,13 @@ def test_a_full_ring_stores_every_chunk_whole(tmp_path: Path, compression: str) 
 def as_format_1(run_dir: Path, step: int) -> None:
     """Rewrite a checkpoint's manifest as dqnlab wrote it before chunks could be left out
     (format 1: the same records, every chunk present and whole)."""
-    path = run_dir / "checkpoints" / f"step-{step:09d}" / checkpoint_files.MANIFEST_FILE
+    path = run_dir / "checkpoints" / f"step-{step:09d}" / checkpoint_manifest.MANIFEST_FILE
     body = json.loads(path.read_bytes())
     body.pop("manifest_crc32")
     for record in body["arrays"].values():
         assert all(chunk is not None and "slots" not in chunk for chunk in record["chunks"])
     body["format"] = "dqnlab-training-checkpoint-1"
-    body["manifest_crc32"] = f"{zlib.crc32(checkpoint_files.canonical(body)):08x}"
+    body["manifest_crc32"] = f"{zlib.crc32(checkpoint_manifest.canonical(body)):08x}"
     path.write_bytes(json.dumps(body, indent=1).encode())
 
 

@@ -20,7 +20,7 @@ import torch
 
 from dqnlab.config import Config, config_fingerprint
 from dqnlab.errors import DqnlabError, ResourceError
-from dqnlab.run import checkpoint_files, checkpoints
+from dqnlab.run import checkpoint_chunks, checkpoint_files, checkpoint_manifest, checkpoints
 from dqnlab.run.checkpoints import (
     CheckpointStore,
     CheckpointWarning,
@@ -122,8 +122,8 @@ def chunk_files(run_dir: Path) -> set[str]:
     return {path.name for path in (run_dir / "checkpoints" / "replay").iterdir()}
 
 
-def manifest_of(run_dir: Path, step: int) -> checkpoint_files.Manifest:
-    return checkpoint_files.read_manifest(run_dir / "checkpoints" / f"step-{step:09d}")
+def manifest_of(run_dir: Path, step: int) -> checkpoint_manifest.Manifest:
+    return checkpoint_manifest.read_manifest(run_dir / "checkpoints" / f"step-{step:09d}")
 
 
 def new_chunks(run_dir: Path, step: int) -> list[str]:
@@ -173,7 +173,7 @@ def test_round_trip_is_bit_identical(tmp_path: Path) -> None:
 
 def test_ring_ranges_map_to_the_chunks_holding_them() -> None:
     def chunks(slots: tuple[int, int] | None) -> set[int] | None:
-        return checkpoint_files.changed_chunks(slots, CAPACITY, CHUNK_SLOTS)
+        return checkpoint_chunks.changed_chunks(slots, CAPACITY, CHUNK_SLOTS)
 
     assert chunks(None) is None
     assert chunks((5, 5)) == set()  # start == stop: nothing written
@@ -331,7 +331,7 @@ def craft_state(run_dir: Path, step: int, marker: Path) -> bytes:
     crafted = buffer.getvalue()
     directory = run_dir / "checkpoints" / f"step-{step:09d}"
     (directory / "state.pt").write_bytes(crafted)
-    record = checkpoint_files.FileRecord("state.pt", len(crafted), zlib.crc32(crafted))
+    record = checkpoint_manifest.FileRecord("state.pt", len(crafted), zlib.crc32(crafted))
     manifest = dataclasses.replace(manifest_of(run_dir, step), state=record)
     (directory / "MANIFEST.json").write_bytes(manifest.to_json())
     return crafted

@@ -25,8 +25,8 @@ checkpoint is complete when its manifest is valid and every file it names has th
 recorded size (checked always) and CRC-32 (checked when loading); anything else is
 skipped with a warning.
 
-Checksum: CRC-32 (zlib) is 2-4 times faster than BLAKE2b (docs/benchmark.md: 1.7 GB/s
-against 0.74 GB/s on 200 MB here). A checksum here detects torn or flipped bytes, not
+Checksum: CRC-32 (zlib), several times faster than BLAKE2b (figures in docs/benchmark.md,
+"checkpoint"). A checksum here detects torn or flipped bytes, not
 tampering, so the fast one is enough; chunk files are named by generation, not by content,
 so nothing relies on the checksum being collision resistant.
 
@@ -34,6 +34,11 @@ Loading: a run directory may be writable by others (a shared cluster filesystem)
 CRC-32 is no defence against a crafted file, so state.pt is read with torch's weights-only
 unpickler, which builds tensors and plain Python values and calls nothing else. A state it
 refuses is skipped as corrupted; `save` refuses to write one.
+
+This module is the store: a save published whole or not at all, pruning, choosing the
+checkpoint to resume. `checkpoint_manifest` is what a checkpoint records,
+`checkpoint_chunks` the replay arrays as chunks (what changed, what to write or reuse,
+loading), `checkpoint_files` the bytes on disk (written whole, read verified).
 """
 
 from __future__ import annotations
@@ -41,45 +46,47 @@ from __future__ import annotations
 import contextlib
 import io
 import os
-import re
 import shutil
 import warnings
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, TypeAlias
+from typing import Any
 
-import numpy as np
 import torch
 
 from dqnlab import __version__
 from dqnlab.algorithm.streams import WrittenSlots
 from dqnlab.errors import DqnlabError, ResourceError
+from dqnlab.run import checkpoint_chunks
+from dqnlab.run.checkpoint_chunks import Arrays, ChunkedArray, Plan, load_arrays, written_slots
 from dqnlab.run.checkpoint_files import (
-    MANIFEST_FILE,
-    STEP_DIR,
-    ArrayRecord,
-    Arrays,
-    ChunkedArray,
-    FileRecord,
-    Incomplete,
-    Manifest,
-    changed_extents,
-    check_arrays,
     check_loadable,
     check_sizes,
-    chunk_pieces,
-    chunk_slots_of,
     fsync_directory,
-    load_arrays,
     load_state,
     pieces_of,
-    read_manifest,
     remove_quietly,
-    size_of,
-    step_of,
     write_file,
 )
+from dqnlab.run.checkpoint_manifest import (
+    MANIFEST_FILE,
+    STEP_DIR,
+    Incomplete,
+    Manifest,
+    read_manifest,
+    step_of,
+)
 from dqnlab.run.rundir import checkpoints_dir
+
+__all__ = [
+    "DEFAULT_CHUNK_SLOTS",
+    "Arrays",
+    "CheckpointStore",
+    "CheckpointWarning",
+    "ChunkedArray",
+    "LoadedCheckpoint",
+    "written_slots",
+]
 
 # Training checkpoints ------------------------------------------------------------------
 
@@ -89,38 +96,12 @@ REPLAY_DIR = "replay"
 # per changed range (<= 230 MB wasted), and a 1M replay is 62 files per array.
 DEFAULT_CHUNK_SLOTS = 16_384
 _MANIFEST_SLACK_BYTES = 2**20
-_CHUNK_FILE = re.compile(r"([A-Za-z0-9_]+)\.(\d{5,})\.g(\d{9,})\.bin(\.tmp)?")
 _PARTIAL_PREFIX = ".partial-"
 _REPLACED_PREFIX = ".replaced-"
-_Plan: TypeAlias = "dict[str, list[_PlannedChunk]]"  # per replay array, per chunk
-
-
-@dataclass(frozen=True)
-class _PlannedChunk:
-    """Slots [start, stop) of a replay array: store its first `slots` (0: none, zeros), in
-    the earlier file `reused` or in a new one (None)."""
-
-    start: int
-    stop: int
-    slots: int
-    reused: FileRecord | None
 
 
 class CheckpointWarning(UserWarning):
     """A checkpoint was skipped or removed; the message says which and why."""
-
-
-def written_slots(start_position: int, writes: int, capacity: int) -> tuple[int, int] | None:
-    """The ring range [start, stop) of `writes` writes from `start_position`; None: all slots.
-
-    A replay's position and size alone cannot tell zero writes from `capacity` writes once
-    it is full, so the caller counts writes since the last save.
-    """
-    if writes < 0 or not 0 <= start_position < capacity:
-        raise ValueError(f"bad ring range: start {start_position}, {writes} writes")
-    if writes >= capacity:
-        return None
-    return start_position, (start_position + writes) % capacity
 
 
 @dataclass
@@ -185,12 +166,10 @@ class CheckpointStore:
         creation: their slots outside the range are zeros, and are not stored.
         A failed save leaves the earlier checkpoints as they were and no files behind.
         """
-        capacity = check_arrays(arrays)
-        buffer = io.BytesIO()
-        torch.save(state, buffer)
-        state_bytes = buffer.getbuffer()
-        check_loadable(state_bytes)
-        plan = self._plan(arrays, changed_slots, capacity)
+        state_bytes = _serialized(state)
+        plan = checkpoint_chunks.plan(
+            arrays, changed_slots, self._base, self.replay_directory, self.chunk_slots
+        )
         created: list[Path] = []
         staging = self.directory / f"{_PARTIAL_PREFIX}step-{step:09d}"
         final = self.directory / f"step-{step:09d}"
@@ -200,7 +179,9 @@ class CheckpointStore:
             self._check_free_space(step, len(state_bytes), arrays, plan)
             shutil.rmtree(staging, ignore_errors=True)
             generation = self._next_generation()
-            records = self._store_arrays(arrays, plan, generation, created)
+            records = checkpoint_chunks.write(
+                arrays, plan, generation, self.replay_directory, created, self.chunk_slots
+            )
             staging.mkdir()
             created.append(staging)
             manifest = Manifest(
@@ -227,90 +208,6 @@ class CheckpointStore:
         self._prune_or_warn(step)
         return final
 
-    def _store_arrays(
-        self, arrays: Arrays, plan: _Plan, generation: int, created: list[Path]
-    ) -> dict[str, ArrayRecord]:
-        records = {
-            name: ArrayRecord(
-                dtype=arrays[name].dtype.str,
-                shape=tuple(arrays[name].shape),
-                chunk_slots=chunk_slots_of(arrays[name], self.chunk_slots),
-                chunks=tuple(
-                    self._store_chunk(arrays[name], name, index, chunk, generation, created)
-                    for index, chunk in enumerate(chunks)
-                ),
-            )
-            for name, chunks in plan.items()
-        }
-        fsync_directory(self.replay_directory)
-        return records
-
-    def _store_chunk(
-        self,
-        array: np.ndarray | ChunkedArray,
-        name: str,
-        index: int,
-        chunk: _PlannedChunk,
-        generation: int,
-        created: list[Path],
-    ) -> FileRecord | None:
-        """The record of a planned chunk: none (zeros), the earlier file, or a new one."""
-        if not chunk.slots or chunk.reused is not None:
-            return chunk.reused if chunk.slots else None
-        encoding, _, pieces = chunk_pieces(array, index, chunk.start, chunk.start + chunk.slots)
-        path = self.replay_directory / f"{name}.{index:05d}.g{generation:09d}.bin"
-        record = write_file(path, pieces, created, encoding)
-        if chunk.slots < chunk.stop - chunk.start:
-            record = replace(record, slots=chunk.slots)
-        return record
-
-    def _plan(self, arrays: Arrays, changed_slots: WrittenSlots, capacity: int) -> _Plan:
-        """Per array, per chunk: the slots to store and the earlier file to reuse.
-
-        Only slots that may hold something other than zeros are stored: those the earlier
-        checkpoint stored and those written since. A fresh store has no earlier checkpoint,
-        so its first save stores the slots written since the replay was made (zeros) and
-        leaves the rest out: a run's first checkpoint holds the filled part. A raw chunk is
-        cut after its last such slot; a `ChunkedArray`'s is stored whole (its zeros compress
-        to nearly nothing). A file is reused when no slot of its chunk changed and it has
-        the chunk's current encoding (a chunk compressed since is written again,
-        compressed)."""
-        plan: _Plan = {}
-        for name, array in arrays.items():
-            chunk_slots = chunk_slots_of(array, self.chunk_slots)
-            extents = changed_extents(changed_slots, capacity, chunk_slots)
-            base = self._base.arrays.get(name) if self._base is not None else None
-            layout = (array.dtype.str, tuple(array.shape), chunk_slots)
-            if base is not None and (base.dtype, base.shape, base.chunk_slots) != layout:
-                base = None
-            # Every chunk whole: all slots changed, or the earlier checkpoint has no record
-            # of this array to tell which slots are zeros.
-            whole = extents is None or (self._base is not None and base is None)
-            chunks: list[_PlannedChunk] = []
-            for index, start in enumerate(range(0, array.shape[0], chunk_slots)):
-                stop = min(start + chunk_slots, array.shape[0])
-                if whole or extents is None:
-                    chunks.append(_PlannedChunk(start, stop, stop - start, None))
-                    continue
-                stored = base.stored_slots(index) if base is not None else 0
-                slots = max(stored, extents.get(index, 0))
-                if slots and isinstance(array, ChunkedArray):
-                    slots = stop - start
-                reused = None
-                record = base.chunks[index] if base is not None else None
-                if slots and record is not None and index not in extents:
-                    encoding = chunk_pieces(array, index, start, stop)[0]
-                    # Reuse only a file that is still there, whole: else write it again.
-                    if (
-                        record.encoding == encoding
-                        and stored == slots
-                        and size_of(self.replay_directory / record.name) == record.size
-                    ):
-                        reused = record
-                chunks.append(_PlannedChunk(start, stop, slots, reused))
-            plan[name] = chunks
-        return plan
-
     def _publish(self, staging: Path, final: Path, replaced: Path, created: list[Path]) -> None:
         if final.exists():  # saved twice at one step: replace it
             shutil.rmtree(replaced, ignore_errors=True)
@@ -328,15 +225,9 @@ class CheckpointStore:
             with contextlib.suppress(OSError):
                 os.replace(replaced, final)
 
-    def _check_free_space(self, step: int, state_size: int, arrays: Arrays, plan: _Plan) -> None:
+    def _check_free_space(self, step: int, state_size: int, arrays: Arrays, plan: Plan) -> None:
         """Room for the state, the manifest and the chunk files that are not reused."""
-        needed = state_size + _MANIFEST_SLACK_BYTES
-        needed += sum(
-            chunk_pieces(arrays[name], index, chunk.start, chunk.start + chunk.slots)[1]
-            for name, chunks in plan.items()
-            for index, chunk in enumerate(chunks)
-            if chunk.slots and chunk.reused is None
-        )
+        needed = state_size + _MANIFEST_SLACK_BYTES + checkpoint_chunks.bytes_to_write(arrays, plan)
         free = shutil.disk_usage(self.directory).free
         if needed > free:
             raise ResourceError(
@@ -351,9 +242,7 @@ class CheckpointStore:
             with contextlib.suppress(Incomplete):
                 latest = max(latest, read_manifest(directory).generation)
         for path in self.replay_directory.iterdir():
-            match = _CHUNK_FILE.fullmatch(path.name)
-            if match:
-                latest = max(latest, int(match.group(3)))
+            latest = max(latest, checkpoint_chunks.generation_of(path) or 0)
         return latest + 1
 
     def _prune_or_warn(self, saved_step: int) -> None:
@@ -494,6 +383,14 @@ class CheckpointStore:
             for path in self.directory.iterdir()
             if STEP_DIR.fullmatch(path.name) and path.is_dir()
         ]
+
+
+def _serialized(state: dict[str, Any]) -> memoryview:
+    """torch.save's bytes of `state`, refused here if resuming could not load them."""
+    buffer = io.BytesIO()
+    torch.save(state, buffer)
+    check_loadable(buffer.getbuffer())
+    return buffer.getbuffer()
 
 
 def _warn(message: str) -> None:
