@@ -17,7 +17,7 @@ from dqnlab.bench import checkpoint, throughput, variants, vector
 from dqnlab.cli import app
 from dqnlab.cli.bench import report
 
-SUBCOMMANDS = ["throughput", "envs", "variants", "checkpoint", "gpu"]
+SUBCOMMANDS = ["throughput", "envs", "variants", "small", "checkpoint", "gpu"]
 
 
 def _invoke(*args: str) -> Any:

@@ -1,10 +1,11 @@
 """Throughput and memory of the Nature DQN on the machine it runs on.
 
-Figures: replay memory per transition and the resident memory of a filled replay, the
-time to sample a minibatch, the update alone (and its GFLOP/s against a dense float32
-matrix multiply's on the same threads, `flops.py`), training throughput with the nature
-preset after the replay-start phase, and evaluation throughput at epsilon 0.05: the final
-evaluation's (`play_games`, every core) and the periodic one's (`play`, one environment).
+Figures: replay memory per transition and the resident memory of a filled replay, the time
+to sample a minibatch, the update alone (and its GFLOP/s against a dense float32 matrix
+multiply's on the same threads, `flops.py`; its time over that of its own dense operations
+alone, `dense.py`), training throughput with the nature preset after the replay-start
+phase, and evaluation throughput at epsilon 0.05: the final evaluation's (`play_games`,
+every core) and the periodic one's (`play`, one environment).
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ import torch
 from dqnlab.algorithm.replay import ReplayMemory
 from dqnlab.bench.cleanrl import CleanRLPeer, cleanrl_figures
 from dqnlab.bench.compression import measure_compression
+from dqnlab.bench.dense import dense_figures
 from dqnlab.bench.flops import matmul_figures, measure_matmul, update_flop_figures, update_flops
 from dqnlab.bench.measure import (
     machine_figures,
@@ -122,14 +124,17 @@ def _filled_replay(config: Config, device: torch.device, figures: dict[str, Any]
 
 
 def _update_figures(training: TrainingState, update_repeats: int) -> dict[str, Any]:
-    """The update alone on one sampled minibatch, its FLOPs (counted on a first update)
-    and the matrix multiply it is held against, measured now on the same threads."""
+    """The update alone on one sampled minibatch, its FLOPs (counted on a first update),
+    its dense operations alone, and the matrix multiply it is held against, measured now
+    on the same threads."""
     batch = training.replay.sample()
     flop = update_flops(training.agent, batch)
     update_ms = median_update_ms(training.agent, batch, update_repeats)
+    dense = dense_figures("", training.agent, batch, update_ms, update_repeats)
     matmul = measure_matmul(training.agent.device)
     return {
         "update_ms": update_ms,
+        **dense,
         **update_flop_figures("", flop, update_ms, matmul),
         **matmul_figures(matmul),
     }

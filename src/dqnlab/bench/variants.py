@@ -3,12 +3,13 @@
 Every variant is its shipped preset on the same game, with replays of the same size filled
 with the same frames. Per variant: the minibatch draw (for prioritized replay, with the
 priority update that follows every update), the update alone (with its GFLOP/s against a
-dense float32 matrix multiply's timed right after it; its FLOPs counted by
-PyTorch's `FlopCounterMode` on one update, `flops.py`), and training frames/s once
-learning runs, measured in alternating rounds so that a change in the machine's load falls
-on every variant alike. Frames/s are also given as a ratio to the `nature` preset's in the
-same run (and prioritized replay's to uniform's), with the share of each timed part of a
-step (environment, acting, storing, sampling, update), and the minutes one whole run of the
+dense float32 matrix multiply's timed right after it; its FLOPs counted by PyTorch's
+`FlopCounterMode` on one update, `flops.py`; and its time over that of its own dense
+operations alone, `dense.py`), and training frames/s once learning runs, measured in
+alternating rounds so that a change in the machine's load falls on every variant alike.
+Frames/s are also given as a ratio to the `nature` preset's in the same run (and
+prioritized replay's to uniform's), with the share of each timed part of a step
+(environment, acting, storing, sampling, update), and the minutes one whole run of the
 preset takes here (`_run_minutes`: `variants der,drq_epsilon` gives Atari 100k's minutes
 per game). Besides, the prioritized draw and update on a full 1M-slot sum tree: the
 replay's part of one prioritized update at Nature's size.
@@ -23,6 +24,7 @@ import torch
 
 from dqnlab.algorithm.prioritized import measure_sampling
 from dqnlab.algorithm.replay import ReplayMemory
+from dqnlab.bench.dense import dense_figures
 from dqnlab.bench.flops import measure_matmul, update_flop_figures, update_flops
 from dqnlab.bench.measure import call_seconds, machine_figures, measure_training, median_update_ms
 from dqnlab.config import Config, preset_names, resolve_config
@@ -128,9 +130,9 @@ def measure_variants(
 
 def _update_figures(preset: str, state: TrainingState, update_repeats: int) -> dict[str, Any]:
     """The preset's replay filled; its minibatch draw (with the priority update that
-    follows, where there is one) and its update, against a matrix multiply timed right
-    after; the state then taken past the replay start and the epsilon anneal, as for most
-    of a run, and warmed up."""
+    follows, where there is one) and its update, against its dense operations alone and a
+    matrix multiply timed right after; the state then taken past the replay start and the
+    epsilon anneal, as for most of a run, and warmed up."""
     config, replay, agent = state.config, state.replay, state.agent
     _fill(replay, np.random.default_rng(config.seed))
 
@@ -144,8 +146,10 @@ def _update_figures(preset: str, state: TrainingState, update_repeats: int) -> d
     # compute (IQN's fraction samples, C51's projection).
     flop = update_flops(agent, batch)
     update_ms = median_update_ms(agent, batch, update_repeats)
+    dense = dense_figures(f"{preset}_", agent, batch, update_ms, update_repeats)
     matmul = measure_matmul(state.agent.device)
     figures[f"{preset}_update_ms"] = update_ms
+    figures.update(dense)
     figures.update(update_flop_figures(f"{preset}_", flop, update_ms, matmul))
     figures[f"{preset}_matmul_gflop_per_s"] = matmul.median_gflop_per_s
     state.steps = config.replay_start_steps + config.epsilon_decay_steps

@@ -1,5 +1,5 @@
 """`dqnlab bench`: how fast dqnlab runs on this machine, one subcommand per question:
-throughput, envs, variants, checkpoint, gpu. Each prints its figures, one a line, and
+throughput, envs, variants, small, checkpoint, gpu. Each prints its figures, one a line, and
 writes them as JSON with --json (`report`)."""
 
 from __future__ import annotations
@@ -14,8 +14,8 @@ from dqnlab.cli.common import Device, resolve_device, write_json
 app = typer.Typer(
     name="bench",
     no_args_is_help=True,
-    help="Measure dqnlab on this machine: throughput, environments, the DQN family, the stop "
-    "checkpoint, the GPU path.",
+    help="Measure dqnlab on this machine: throughput, environments, the DQN family, small "
+    "networks, the stop checkpoint, the GPU path.",
 )
 
 # Options the subcommands share; each gives its own default.
@@ -174,6 +174,28 @@ def variants(
 
     presets = parse_variants(names)
     figures = measure_variants(presets, env, steps, replay_capacity, resolve_device(device))
+    report(figures, json_path)
+
+
+@app.command()
+def small(
+    steps: Steps = 5000,
+    rounds: Annotated[
+        int, typer.Option(min=1, help="Rounds of training, dqnlab's and SB3's alternating")
+    ] = 2,
+    peers: Peers = False,
+    device: Device = "cpu",
+    json_path: JsonPath = None,
+) -> None:
+    """Updates per second of the small networks (CartPole's MLP, MinAtar's small CNN, DER's
+    network), each against its dense operations alone, and the classic preset's training
+    steps/s on CartPole-v1 (with --peers, against Stable-Baselines3's DQN with the same
+    settings, alternating)."""
+    from dqnlab.bench.peers import prepare_peers
+    from dqnlab.bench.small import measure_small_networks
+
+    prepare_peers(peers, None, None)
+    figures = measure_small_networks(steps, rounds, resolve_device(device), peers=peers)
     report(figures, json_path)
 
 
