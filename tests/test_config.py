@@ -294,3 +294,36 @@ def test_toml_tables_and_dates_read_back() -> None:
     assert setting_text({"is_slippery": False}) == "{is_slippery = false}"
     with_date = resolve_config("classic", {"env_kwargs": {"day": datetime.date(2026, 1, 2)}})
     assert len(config_fingerprint(with_date)) == 64
+
+
+def test_classic_anneals_epsilon_over_a_fraction_of_the_budget() -> None:
+    # Issue 33: `--steps` scales classic's anneal as SB3's exploration_fraction does; at the
+    # preset's own budget the anneal is the 8,000 steps it always was (the same run).
+    assert resolve_config("classic", env="CartPole-v1").epsilon_decay_steps == 8_000
+    assert (
+        resolve_config("classic", env="CartPole-v1", total_steps=300_000).epsilon_decay_steps
+        == 24_000
+    )
+    assert (
+        resolve_config("classic", {"total_steps": 1_000}, env="CartPole-v1").epsilon_decay_steps
+        == 80
+    )
+    # Steps given by the user win and turn the fraction off, so config.toml says what ran.
+    given = resolve_config("classic", {"epsilon_decay_steps": 5_000}, total_steps=300_000)
+    assert (given.epsilon_decay_steps, given.epsilon_decay_fraction) == (5_000, 0.0)
+    # A fraction given with --set scales a preset that anneals in steps.
+    nature = resolve_config("nature", {"epsilon_decay_fraction": 0.1}, total_steps=2_000_000)
+    assert nature.epsilon_decay_steps == 200_000
+    assert resolve_config("nature", total_steps=2_000_000).epsilon_decay_steps == 1_000_000
+
+
+@pytest.mark.parametrize(
+    ("overrides", "message"),
+    [
+        ({"epsilon_decay_fraction": 1.5}, "epsilon_decay_fraction = 1.5 must be between 0 and 1"),
+        ({"epsilon_decay_fraction": 0.2, "epsilon_decay_steps": 10}, "are both given"),
+    ],
+)
+def test_a_bad_epsilon_fraction_is_one_line(overrides: dict, message: str) -> None:
+    with pytest.raises(ConfigError, match=message):
+        resolve_config("classic", overrides, env="CartPole-v1")

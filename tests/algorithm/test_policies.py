@@ -32,6 +32,15 @@ def test_epsilon_greedy_breaks_ties_at_random_and_needs_no_q_values_to_explore()
     assert np.all(np.abs(counts - 1000) < 150)
 
 
+def test_a_nan_q_value_gives_a_random_action_not_a_crash() -> None:
+    # A diverged network acts before its update reports the NaN: the greedy choice has no
+    # maximum then, and must not raise numpy's error in place of dqnlab's divergence message.
+    policy = EpsilonGreedy(NATURE, 3)
+    rng = np.random.default_rng(0)
+    chosen = {policy.choose(np.array([1.0, np.nan, 0.0]), 0.0, rng) for _ in range(60)}
+    assert chosen == {0, 1, 2}
+
+
 class Softmax(Policy):
     """A user's policy: Boltzmann exploration at temperature epsilon."""
 

@@ -11,7 +11,7 @@ import typer
 from dqnlab.cli import app, main
 from tests.helpers import dqnlab
 
-COMMANDS = ["train", "resume", "evaluate", "bench", "ablate", "sweep", "status", "report",
+COMMANDS = ["train", "resume", "evaluate", "bench", "ablate", "sweep", "tune", "status", "report",
             "inspect", "export", "push", "pull", "games", "presets"]  # fmt: skip
 
 

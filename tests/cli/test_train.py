@@ -131,3 +131,32 @@ def test_bad_input_gives_one_clear_line(tmp_path: Path, args: list[str], message
     assert "Traceback" not in result.stderr
     assert len(result.stderr.strip().splitlines()) == 1
     assert not (tmp_path / "run").exists()
+
+
+def test_the_final_evaluation_after_training_holds_the_runs_lease(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # A run is not done until its final evaluation is saved: while it plays, `dqnlab status`
+    # and a sweep must see the run held (not "retrying"), and no second process may start it.
+    import torch
+
+    from dqnlab.cli.train import _final_evaluation
+    from dqnlab.config import resolve_config
+    from dqnlab.run import evaluate
+    from dqnlab.run.lease import LeaseHeld, RunLease, lease_is_live
+
+    run = tmp_path / "run"
+    run.mkdir()
+    seen: list[bool] = []
+
+    def fake_evaluation(run_dir: Path, *args: object) -> dict[str, float]:
+        seen.append(lease_is_live(run_dir))
+        with pytest.raises(LeaseHeld):
+            RunLease(run_dir).acquire()
+        return {"mean": 1.0, "std": 0.0, "episodes": 2}
+
+    monkeypatch.setattr(evaluate, "evaluate_and_save", fake_evaluation)
+    config = resolve_config("classic", env="CartPole-v1")
+    _final_evaluation(config, run, torch.device("cpu"))
+    assert seen == [True]
+    assert not lease_is_live(run)  # released at the end

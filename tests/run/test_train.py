@@ -19,7 +19,7 @@ from dqnlab.run.rundir import (
     load_run_config,
     prepare_run_dir,
 )
-from dqnlab.run.train import train
+from dqnlab.run.train import STOPPED_BY_HOOK, train
 
 
 def test_update_and_target_copy_timing(tmp_path: Path, monkeypatch) -> None:
@@ -152,3 +152,27 @@ def test_a_stop_request_delivered_twice_is_one_request(monkeypatch) -> None:  # 
         clock[0] += StopRequests.SAME_REQUEST_SECONDS
         with pytest.raises(KeyboardInterrupt):
             os.kill(os.getpid(), signal.SIGINT)
+
+
+def test_the_training_hook_stops_a_real_run_after_a_checkpoint(tmp_path: Path) -> None:
+    config = resolve_config(
+        "classic",
+        env="CartPole-v1",
+        total_steps=300,
+        eval_period_steps=100,
+        eval_steps=50,
+        replay_start_steps=50,
+        heldout_transitions=50,
+    )
+    prepare_run_dir(tmp_path / "run", force=False)
+    told: list[tuple[int, float]] = []
+    result = train(
+        config,
+        tmp_path / "run",
+        torch.device("cpu"),
+        progress=False,
+        tensorboard=False,
+        on_evaluation=lambda step, mean: told.append((step, mean)) or step >= 200,
+    )
+    assert [step for step, _ in told] == [100, 200] and result.steps == 200
+    assert result.interrupted == STOPPED_BY_HOOK

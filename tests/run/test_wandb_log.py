@@ -5,6 +5,7 @@ summary; without wandb, asking for it is one line."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import shutil
 import sys
@@ -138,7 +139,9 @@ def resumed_run(offline_wandb: None, tmp_path_factory: pytest.TempPathFactory) -
     (first,) = sessions(run)
     log = next(rundir.wandb_dir(run).glob(f"offline-run-*/run-{first['id']}.wandb"))
     kept_step = cut_after_step(log, 370)
-    train(wandb_config(total_steps=600), run, cpu, progress=False, resume=True)
+    # As `dqnlab resume --steps 600` extends it: the saved settings with a new budget.
+    longer = dataclasses.replace(wandb_config(), total_steps=600)
+    train(longer, run, cpu, progress=False, resume=True)
     return {"run": run, "kept_step": kept_step, "sent_step": max(first["history"])}
 
 

@@ -43,6 +43,8 @@ class EpsilonGreedy(Policy):
             return int(rng.integers(self.num_actions))
         values = q_values() if callable(q_values) else q_values
         best = np.flatnonzero(values == values.max())
+        if len(best) == 0:  # a NaN among them (a diverged network): no greedy action, so a
+            return int(rng.integers(self.num_actions))  # random one; the update says why
         return int(best[0] if len(best) == 1 else rng.choice(best))
 
 

@@ -1,4 +1,4 @@
-"""The `dqnlab` command: train, evaluate, benchmark, ablate, sweep, status, report, inspect,
+"""The `dqnlab` command: train, evaluate, benchmark, ablate, sweep, tune, status, report, inspect,
 share agents (export, push, pull), list games and presets."""
 
 from __future__ import annotations
@@ -8,7 +8,7 @@ from typing import Any
 import typer
 from typer.core import TyperGroup
 
-from dqnlab.cli import bench, hub, listings, results, sweeps, train
+from dqnlab.cli import bench, hub, listings, results, sweeps, train, tune
 from dqnlab.cli.allocator import keep_freed_memory
 from dqnlab.cli.common import run_command
 
@@ -21,6 +21,7 @@ COMMANDS = (
     bench.app,
     sweeps.ablate,
     sweeps.sweep,
+    tune.tune,
     sweeps.status,
     results.report,
     results.inspect,

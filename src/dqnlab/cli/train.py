@@ -123,15 +123,19 @@ def _run(config, run_dir: Path, device, progress: bool, resume: bool) -> None:  
 
 
 def _final_evaluation(config, run_dir: Path, device) -> None:  # noqa: ANN001
-    """The run's final evaluation, saved as its final_evaluation.json."""
+    """The run's final evaluation, saved as its final_evaluation.json, under the run's lease:
+    the run is not done until it is saved, so `dqnlab status` and a sweep see it running,
+    and no second process starts it meanwhile."""
     from dqnlab.config import DEFAULT_EVALUATION_SEED
     from dqnlab.run.evaluate import evaluate_and_save
+    from dqnlab.run.lease import held
 
     network = config.final_eval_network
     typer.echo(
         f"dqnlab: final evaluation of the {network} network, {config.final_eval_episodes} games"
     )
-    record = evaluate_and_save(run_dir, network, None, DEFAULT_EVALUATION_SEED, device)
+    with held(run_dir):
+        record = evaluate_and_save(run_dir, network, None, DEFAULT_EVALUATION_SEED, device)
     typer.echo(
         f"dqnlab: {config.env}: {record['mean']:.2f} ± {record['std']:.2f} over "
         f"{record['episodes']} games, saved in {run_dir}"

@@ -6,6 +6,7 @@ from __future__ import annotations
 import dataclasses
 import datetime
 import difflib
+import functools
 import re
 import sys
 import typing
@@ -91,9 +92,17 @@ def parse_overrides(pairs: list[str]) -> dict[str, Any]:
     return values
 
 
+@functools.cache
+def _field_types() -> dict[str, Any]:
+    """Config's fields and their types, evaluated once: `get_type_hints` evaluates every
+    annotation at each call, and a sweep's driver reads every run's config.toml at each
+    status poll (it took 13% of a core in a 26-game sweep when called per field)."""
+    return typing.get_type_hints(Config)
+
+
 def _coerce(name: str, value: Any) -> Any:
     """Convert a value read from TOML or the command line to the field's declared type."""
-    expected = typing.get_type_hints(Config)[name]
+    expected = _field_types()[name]
     try:
         if expected is bool:
             if isinstance(value, str) and value.lower() in ("true", "false"):
@@ -140,12 +149,30 @@ def resolve_config(preset: str, overrides: dict[str, Any] | None = None, **expli
     a dotted `parts.PART.NAME` key sets one of a part's own settings, and the settings a
     user's part declares are filled in with their defaults (`with_part_settings`)."""
     values = load_preset(preset)
-    values.update(overrides or {})
-    values.update({k: v for k, v in explicit.items() if v is not None})
+    given = {**(overrides or {}), **{k: v for k, v in explicit.items() if v is not None}}
+    values.update(given)
     _check_names(values, "the configuration")
-    values = _nest_part_settings(values)
+    values = _budget_scaled(_nest_part_settings(values), given)
     config = Config(**{name: _coerce(name, value) for name, value in values.items()})
     return with_part_settings(config)
+
+
+def _budget_scaled(values: dict[str, Any], given: dict[str, Any]) -> dict[str, Any]:
+    """`epsilon_decay_steps` from `epsilon_decay_fraction` of `total_steps` when the fraction
+    is above 0, so that `--steps` scales the anneal (SB3's exploration_fraction); an
+    `epsilon_decay_steps` the user gives wins, and turns the fraction off."""
+    fraction = _coerce("epsilon_decay_fraction", values.get("epsilon_decay_fraction", 0.0))
+    if fraction <= 0:
+        return values
+    if "epsilon_decay_steps" in given:
+        if "epsilon_decay_fraction" in given:
+            raise ConfigError(
+                "epsilon_decay_steps and epsilon_decay_fraction are both given: give one "
+                "(the fraction of total_steps, or the steps)"
+            )
+        return {**values, "epsilon_decay_fraction": 0.0}
+    total_steps = _coerce("total_steps", values.get("total_steps", Config.total_steps))
+    return {**values, "epsilon_decay_steps": max(1, round(fraction * total_steps))}
 
 
 def _nest_part_settings(values: dict[str, Any]) -> dict[str, Any]:

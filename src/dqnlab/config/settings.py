@@ -182,6 +182,11 @@ class Config:
     epsilon_start: float = _setting(1.0, "Epsilon at the end of the replay-start phase")
     epsilon_end: float = _setting(0.1, "Epsilon after the anneal")
     epsilon_decay_steps: int = _setting(1_000_000, "Agent steps of the linear epsilon anneal")
+    epsilon_decay_fraction: float = _setting(
+        0.0, "When above 0, the anneal's length as a fraction of total_steps (SB3's "
+        "exploration_fraction): epsilon_decay_steps is set from it when the run's settings are "
+        "resolved, unless given itself"
+    )  # fmt: skip
     # Evaluation.
     eval_epsilon: float = _setting(0.05, "Epsilon while evaluating")
     eval_period_steps: int = _setting(

@@ -102,6 +102,7 @@ def _validate_ranges(config: Config) -> None:
             raise ConfigError(f"{name} = {getattr(config, name)} must be zero or more")
     unit_interval = (
         "importance_exponent_start", "sticky_action_probability", "discount", "epsilon_start",
+        "epsilon_decay_fraction",
         "epsilon_end", "eval_epsilon",
     )  # fmt: skip
     for name in unit_interval:

@@ -81,7 +81,10 @@ def nearest_preset(config: Config) -> tuple[str, list[str]]:
     default = "nature" if is_atari(config.env) else "classic"
     candidates = []
     for name in [default, *(n for n in preset_names() if n != default)]:
-        preset = with_recorded_network(resolve_config(name, env=config.env), config)
+        # At the run's budget: a preset's budget-scaled settings (epsilon_decay_fraction)
+        # are compared as `train --steps` makes them.
+        resolved = resolve_config(name, env=config.env, total_steps=config.total_steps)
+        preset = with_recorded_network(resolved, config)
         differing = [s for s in differing_settings(preset, config) if s not in OWN_OPTIONS]
         candidates.append((len(differing), name, differing))
     _, name, differing = min(candidates, key=lambda candidate: candidate[0])  # first on ties
@@ -183,7 +186,7 @@ def card_text(facts: CardFacts) -> str:
         "",
     ]
     if differing:
-        preset_config = resolve_config(preset, env=config.env)
+        preset_config = resolve_config(preset, env=config.env, total_steps=config.total_steps)
         lines += [
             f"## Settings that differ from the `{preset}` preset",
             "",

@@ -34,6 +34,7 @@ import secrets
 import socket
 import threading
 import time
+from collections.abc import Iterator
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -197,6 +198,19 @@ class RunLease:
         current = read_lease(self.run_dir)
         if current is not None and current.token == self.token:
             os.replace(self._write_temporary(self._record(released=True)), lease_path(self.run_dir))
+
+
+@contextlib.contextmanager
+def held(run_dir: Path) -> Iterator[RunLease]:
+    """The run's lease for a `with` block: acquired (else LeaseHeld), renewed from a thread,
+    released at the end, whatever ends the block."""
+    lease = RunLease(run_dir)
+    lease.acquire()
+    lease.renew_in_background()
+    try:
+        yield lease
+    finally:
+        lease.release()
 
 
 def release_dead_owner(run_dir: Path, pid: int) -> None:

@@ -9,6 +9,7 @@ besides learning.
     every 1,000 steps:   check for NaN, log loss and frames/s, progress  (_report_progress)
     when due:            write a complete training checkpoint            (_checkpoint)
     on SIGINT/SIGTERM:   checkpoint, then stop                           (StopRequests)
+    when on_evaluation says so after an evaluation: checkpoint, then stop (`dqnlab tune`)
 
 With `num_envs` = N, one advance is N agent steps: a period's work happens after the
 advance whose steps cross one of its multiples, at the step the advance ended on.
@@ -23,6 +24,7 @@ import sys
 import threading
 import time
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -45,7 +47,7 @@ from dqnlab.run.determinism import (
     resume_threads,
     resume_warning,
 )
-from dqnlab.run.lease import RunLease
+from dqnlab.run.lease import RunLease, held
 from dqnlab.run.logs import RunLogger
 from dqnlab.run.play import EvaluationResult
 from dqnlab.run.state import FinishedGame, check_disk
@@ -53,6 +55,9 @@ from dqnlab.run.wandb_log import WandbLog, import_wandb, uses_wandb
 
 PROGRESS_PERIOD_STEPS = 1000  # NaN checks, TensorBoard scalars and the progress bar
 RECENT_GAMES = 20  # games in the progress bar's mean score
+STOPPED_BY_HOOK = "on_evaluation"  # TrainResult.interrupted when on_evaluation stopped the run
+# Told each periodic evaluation's (step, mean) as it is recorded; True stops the run.
+EvaluationHook = Callable[[int, float], bool]
 
 
 @dataclass
@@ -64,7 +69,7 @@ class TrainResult:
     best_eval_mean: float
     evaluations: list[tuple[int, float]]
     session_frames: int  # training frames of this session
-    interrupted: str | None = None  # the signal that stopped the run early
+    interrupted: str | None = None  # the signal that stopped the run early, or STOPPED_BY_HOOK
 
     @property
     def frames_per_second(self) -> float:
@@ -120,22 +125,26 @@ def train(
     progress: bool = True,
     tensorboard: bool = True,
     resume: bool = False,
+    on_evaluation: EvaluationHook | None = None,
 ) -> TrainResult:
     """Train into `run_dir`: from scratch, or with `resume` from its newest complete
     checkpoint (the run directory created by the caller with `rundir.prepare_run_dir`),
-    holding the run's lease (`lease.RunLease`) from start to end."""
-    lease = RunLease(run_dir)
-    lease.acquire()
-    lease.renew_in_background()
-    try:
-        return TrainingLoop(config, run_dir, device, progress, tensorboard, resume, lease).run()
-    finally:
-        lease.release()
+    holding the run's lease (`lease.RunLease`) from start to end. `on_evaluation` is told
+    each periodic evaluation's step and mean; when it returns True the run checkpoints and
+    stops as a stop request stops it (`interrupted` = STOPPED_BY_HOOK): `dqnlab tune`
+    prunes a trial so."""
+    with held(run_dir) as lease:
+        loop = TrainingLoop(config, run_dir, device, progress, tensorboard, resume, lease)
+        loop.on_evaluation = on_evaluation
+        return loop.run()
 
 
 class TrainingLoop:
     """One session of a run: from its start or its newest checkpoint to its budget or a
     stop request."""
+
+    on_evaluation: EvaluationHook | None = None  # see `train`
+    hook_stop = False  # on_evaluation asked the run to stop
 
     def __init__(
         self,
@@ -220,10 +229,11 @@ class TrainingLoop:
                     self._report_progress(step)
                 if first <= config.replay_start_steps <= step:
                     self.learning_since = (time.perf_counter(), state.frames)
-                if evaluated or stop.signal_name is not None or self._checkpoint_due(first, step):
+                stopping = stop.signal_name is not None or self.hook_stop
+                if evaluated or stopping or self._checkpoint_due(first, step):
                     self._checkpoint(step)
-                if stop.signal_name is not None:
-                    interrupted = stop.signal_name
+                if stopping:
+                    interrupted = stop.signal_name or STOPPED_BY_HOOK
                     break
                 self.logger.keep_fresh()
             if interrupted is None and self.background is not None and self.background.pending:
@@ -308,6 +318,8 @@ class TrainingLoop:
             }
         )
         self.last_eval_text = f"{mean:.1f}"
+        if self.on_evaluation is not None and self.on_evaluation(step, mean):
+            self.hook_stop = True
 
     def _report_progress(self, step: int) -> None:
         """Every PROGRESS_PERIOD_STEPS: catch NaN where the update does not (on a GPU),

@@ -32,6 +32,22 @@ from tests.analysis.report.common import (
 )
 
 
+def test_a_run_another_process_holds_is_not_evaluated_by_the_report(
+    cartpole_copy: Path, tmp_path: Path
+) -> None:
+    # A sweep's run playing its final evaluation holds its lease: the report must neither
+    # play that evaluation a second time nor write beside it.
+    from dqnlab.run.lease import held
+
+    held_run, *others = sorted(find_runs([cartpole_copy]))
+    evaluator = CountingEvaluator()
+    with held(held_run):
+        report = write_report([cartpole_copy], tmp_path / "out", evaluate_missing=evaluator)
+    assert sorted(evaluator.calls) == others
+    assert load_final_evaluation(held_run) is None
+    assert any(f"{held_run}: another process holds it now" in note for note in report.notes)
+
+
 def test_figures_are_written_as_png_and_svg(atari_report: Report) -> None:
     names = sorted(path.name for curve in atari_report.curves for path in curve.files)
     assert names == [

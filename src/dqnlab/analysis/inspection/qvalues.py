@@ -331,7 +331,9 @@ def compare_networks(
         else:
             network, agent, network_config = load_network(name, path, device, seed)
             if network_config.env != best_config.env:
-                raise DqnlabError(f"{path} was trained on {network_config.env}, not {config.env}")
+                raise DqnlabError(
+                    f"{path} was trained on {network_config.env}, not {best_config.env}"
+                )
         networks.append(network)
         q_values.append(agent.q_values(inputs))  # eval mode, one forward pass of all frames
     return Inspection(

@@ -194,7 +194,11 @@ def matching_preset(config: Config) -> str | None:
         key: getattr(config, key) for key in ("env_kwargs", "env_wrappers", "observation_images")
     }
     for name in preset_names():
-        preset = resolve_config(name, env=config.env, **environment).to_dict()
+        # At the run's budget: budget-scaled settings (epsilon_decay_fraction) as the run's.
+        resolved = resolve_config(
+            name, env=config.env, total_steps=config.total_steps, **environment
+        )
+        preset = resolved.to_dict()
         if all(values[k] == preset[k] for k in FIELD_NAMES if k not in NOT_GROUPED):
             return name
     return None

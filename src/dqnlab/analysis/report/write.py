@@ -77,6 +77,7 @@ from dqnlab.config import DEFAULT_EVALUATION_SEED
 from dqnlab.errors import DqnlabError
 from dqnlab.run import rundir
 from dqnlab.run.evaluate import evaluate_and_save
+from dqnlab.run.lease import lease_is_live
 from dqnlab.run.wandb_log import add_to_summary, final_evaluation_values
 
 if TYPE_CHECKING:
@@ -355,6 +356,12 @@ def _complete_final_evaluations(
     evaluated = []
     for run in runs:
         if _scored_when_finished(run):
+            continue
+        if lease_is_live(run.run_dir):  # trained or playing its final evaluation right now
+            notes.append(
+                f"{run.run_dir}: another process holds it now (training, or playing its final "
+                "evaluation): its final evaluation is not played here"
+            )
             continue
         kind = run.config.final_eval_network  # best, or last (Atari 100k)
         network_step = rundir.network_step(run.run_dir, kind)

@@ -1,0 +1,128 @@
+"""`dqnlab tune`: a study of settings on Optuna, each trial a dqnlab run."""
+
+from __future__ import annotations
+
+import shlex
+import sys
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from dqnlab.cli.common import ENV_HELP, Device, resolve_device
+from dqnlab.errors import DqnlabError
+
+Trials = Annotated[
+    int,
+    typer.Option(
+        help="Trials the study holds when the tune ends (a carried-on study counts those it has)"
+    ),
+]
+Steps = Annotated[int, typer.Option(help="Training budget of each trial in agent steps")]
+StartPreset = Annotated[
+    str | None,
+    typer.Option(
+        help="The preset every trial starts from (nature for Atari, classic otherwise) or a .toml path"
+    ),
+]
+FixedSettings = Annotated[
+    list[str] | None,
+    typer.Option("--set", help="A setting fixed for every trial: KEY=VALUE (repeatable)"),
+]
+SpaceFile = Annotated[
+    Path | None, typer.Option(help="A TOML search space over the default one (docs/tune.md)")
+]
+Evaluations = Annotated[
+    int,
+    typer.Option(
+        help="Periodic evaluations of each trial, which the pruner sees (eval_period_steps = steps / evaluations unless --set)"
+    ),
+]
+Pruner = Annotated[str, typer.Option(help="median (rl-baselines3-zoo's) or none")]
+Jobs = Annotated[
+    int,
+    typer.Option(help="Trials trained at once, each in its own process with one PyTorch thread"),
+]
+SamplerSeed = Annotated[
+    int, typer.Option(help="Seed of the sampler (TPE); each trial's run seed is the preset's")
+]
+StudyDir = Annotated[
+    Path | None,
+    typer.Option(
+        help="Where the study is kept (default studies/ENV-PRESET); the same command carries it on"
+    ),
+]
+
+
+def tune(
+    env: Annotated[str, typer.Option(help=ENV_HELP)],
+    trials: Trials,
+    steps: Steps,
+    preset: StartPreset = None,
+    set_: FixedSettings = None,
+    space: SpaceFile = None,
+    evaluations: Evaluations = 10,
+    pruner: Pruner = "median",
+    jobs: Jobs = 1,
+    seed: SamplerSeed = 0,
+    study_dir: StudyDir = None,
+    device: Device = "auto",
+) -> None:
+    """Search settings with Optuna: each trial a dqnlab run pruned from its periodic
+    evaluations; writes best.toml (a preset), trials.csv and Optuna's figures.
+
+    * `dqnlab tune --env CartPole-v1 --trials 50 --steps 50000`
+    * `dqnlab tune --env CartPole-v1 --trials 20 --steps 20000 --space space.toml --jobs 2`
+
+    A killed tune is carried on by the same command: its unfinished trial resumes from
+    its run's newest checkpoint."""
+    try:
+        import optuna  # noqa: F401
+    except ImportError:
+        raise DqnlabError("dqnlab tune needs Optuna: pip install 'dqnlab[tune]'") from None
+    from dqnlab.config import parse_overrides
+    from dqnlab.envs import is_atari
+    from dqnlab.run.rundir import safe_name
+    from dqnlab.tune.driver import tune as run_tune
+    from dqnlab.tune.space import check_space, load_space
+    from dqnlab.tune.study import BEST_FILE, TunePlan
+
+    _check_counts(trials, steps, evaluations, jobs, pruner)
+    preset = preset or ("nature" if is_atari(env) else "classic")
+    fixed = parse_overrides(set_ or [])
+    searched = load_space(space)
+    check_space(searched, preset, fixed, env, steps)
+    plan = TunePlan(env=env, preset=preset, steps=steps, space=searched, fixed=fixed,
+                    evaluations=evaluations, pruner=pruner, seed=seed)  # fmt: skip
+    study_dir = study_dir or Path("studies") / f"{safe_name(env)}-{safe_name(Path(preset).stem)}"
+    torch_device = resolve_device(device)
+    typer.echo(f"dqnlab: tuning {env} from preset {preset}: {trials} trials of {steps} steps "
+               f"into {study_dir}")  # fmt: skip
+    command = shlex.join(["dqnlab", *sys.argv[1:]])
+    study = run_tune(study_dir, plan, trials, torch_device, command, jobs=jobs)
+    _say_result(study, study_dir / BEST_FILE)
+
+
+def _check_counts(trials: int, steps: int, evaluations: int, jobs: int, pruner: str) -> None:
+    """The numbers of the command line, before anything is written."""
+    for option, value in (("--trials", trials), ("--steps", steps),
+                          ("--evaluations", evaluations), ("--jobs", jobs)):  # fmt: skip
+        if value < 1:
+            raise DqnlabError(f"{option} {value}: must be at least 1")
+    if evaluations > steps:
+        raise DqnlabError(f"--evaluations {evaluations} is more than --steps {steps}")
+    if pruner not in ("median", "none"):
+        raise DqnlabError(f"--pruner {pruner!r} is not one of: median, none")
+
+
+def _say_result(study, best_path: Path) -> None:  # noqa: ANN001 - optuna is optional
+    from optuna.trial import TrialState
+
+    counts = {state: len(study.get_trials(states=(state,))) for state in TrialState}
+    summary = ", ".join(f"{n} {state.name.lower()}" for state, n in counts.items() if n)
+    if not counts[TrialState.COMPLETE]:
+        typer.echo(f"dqnlab: {summary}; no trial completed, so no {best_path.name}")
+        return
+    best = study.best_trial
+    typer.echo(f"dqnlab: {summary}; best: trial {best.number} with {best.value:.2f}, "
+               f"settings in {best_path}")  # fmt: skip

@@ -1,0 +1,130 @@
+"""A study of `dqnlab tune` on disk: every file name of a study directory, its study.json
+(what the study searches: environment, preset, budget, fixed settings, space), and the
+Optuna study in a journal file beside it, so that a killed tune carries on.
+
+    STUDY_DIR/study.json            the plan; a tune with another one is refused
+    STUDY_DIR/journal.log           Optuna's JournalStorage (a file with a lock beside it)
+    STUDY_DIR/trials/trial-NNNN/    each trial: a dqnlab run directory
+    STUDY_DIR/best.toml             the best trial's settings as a preset (`outputs.py`)
+    STUDY_DIR/trials.csv            one row per trial
+    STUDY_DIR/history.png, importances.png   Optuna's figures
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+from typing import Any
+
+import optuna
+from optuna.storages.journal import JournalFileBackend, JournalStorage
+
+from dqnlab.errors import DqnlabError
+from dqnlab.tune.space import SearchEntry
+
+STUDY_FILE = "study.json"
+JOURNAL_FILE = "journal.log"
+TRIALS_DIR = "trials"
+BEST_FILE = "best.toml"
+TRIALS_TABLE = "trials.csv"
+HISTORY_FIGURE = "history.png"
+IMPORTANCES_FIGURE = "importances.png"
+STUDY_NAME = "dqnlab-tune"
+# What must match for a study directory to be carried on (the trial count may grow).
+PLAN_KEYS = ("env", "preset", "steps", "fixed", "space", "evaluations", "pruner")
+
+
+@dataclasses.dataclass(frozen=True)
+class TunePlan:
+    """What a study searches; every trial is the preset with `fixed`, then its own draw
+    from `space`, trained for `steps` agent steps and evaluated `evaluations` times."""
+
+    env: str
+    preset: str
+    steps: int
+    space: tuple[SearchEntry, ...]
+    fixed: dict[str, Any] = dataclasses.field(default_factory=dict)
+    evaluations: int = 10
+    pruner: str = "median"
+    seed: int = 0  # the sampler's
+
+    def record(self) -> dict[str, Any]:
+        """The plan as study.json holds it."""
+        return {
+            "env": self.env,
+            "preset": self.preset,
+            "steps": self.steps,
+            "fixed": self.fixed,
+            "space": {entry.name: entry.as_dict() for entry in self.space},
+            "evaluations": self.evaluations,
+            "pruner": self.pruner,
+        }
+
+
+def study_path(study_dir: Path, name: str) -> Path:
+    """One of the study's own files (STUDY_FILE, BEST_FILE...)."""
+    return study_dir / name
+
+
+def trial_run_dir(study_dir: Path, number: int) -> Path:
+    return study_dir / TRIALS_DIR / f"trial-{number:04d}"
+
+
+def check_study_dir(study_dir: Path, plan: TunePlan) -> bool:
+    """Whether `study_dir` holds this plan's study (True: carry it on). One made for
+    another plan, or a non-empty directory that is not a study, is refused in one line."""
+    if study_dir.exists() and not study_dir.is_dir():
+        raise DqnlabError(f"--study-dir {study_dir} exists and is not a directory")
+    record_path = study_path(study_dir, STUDY_FILE)
+    if not record_path.exists():
+        if study_dir.exists() and any(study_dir.iterdir()):
+            raise DqnlabError(
+                f"--study-dir {study_dir} is not empty and holds no {STUDY_FILE}: "
+                "choose an empty or new directory"
+            )
+        return False
+    try:
+        saved = json.loads(record_path.read_text())
+    except (OSError, ValueError) as error:
+        raise DqnlabError(f"{record_path} cannot be read: {error}") from None
+    wanted = json.loads(json.dumps(plan.record()))  # as JSON reads it back (tuples: lists)
+    differing = [key for key in PLAN_KEYS if saved.get(key) != wanted[key]]
+    if differing:
+        shown = ", ".join(f"{key} {saved.get(key)!r}" for key in differing if key != "space")
+        shown = shown or "another search space"
+        raise DqnlabError(
+            f"--study-dir {study_dir} holds a study made for {shown} "
+            f"(it differs in {', '.join(differing)}); choose another --study-dir"
+        )
+    return True
+
+
+def open_study(study_dir: Path, plan: TunePlan, seed_offset: int = 0) -> optuna.Study:
+    """The study in `study_dir` (created with its study.json if new), with the plan's
+    pruner and a TPE sampler seeded by the plan's seed (plus `seed_offset`, one per job)."""
+    if not check_study_dir(study_dir, plan):
+        study_dir.mkdir(parents=True, exist_ok=True)
+        path = study_path(study_dir, STUDY_FILE)
+        partial = path.with_suffix(".json.partial")
+        partial.write_text(json.dumps(plan.record(), indent=2) + "\n")
+        partial.replace(path)  # whole or not at all
+    optuna.logging.set_verbosity(optuna.logging.WARNING)
+    storage = JournalStorage(JournalFileBackend(str(study_path(study_dir, JOURNAL_FILE))))
+    return optuna.create_study(
+        study_name=STUDY_NAME,
+        storage=storage,
+        direction="maximize",
+        sampler=optuna.samplers.TPESampler(seed=plan.seed + seed_offset),
+        pruner=make_pruner(plan),
+        load_if_exists=True,
+    )
+
+
+def make_pruner(plan: TunePlan) -> optuna.pruners.BasePruner:
+    """`median` (rl-baselines3-zoo's: no pruning in the first 5 trials nor in the first
+    third of a trial's evaluations) or `none`."""
+    if plan.pruner == "none":
+        return optuna.pruners.NopPruner()
+    warmup_steps = plan.steps // 3
+    return optuna.pruners.MedianPruner(n_startup_trials=5, n_warmup_steps=warmup_steps)

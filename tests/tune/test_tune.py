@@ -1,0 +1,190 @@
+"""Tunes: pruning from fake evaluations, tiny real CartPole studies end to end, a killed
+tune carried on with no trial run twice and none lost, best.toml trained, bad input
+refused in one line with nothing written."""
+
+from __future__ import annotations
+
+import csv
+import json
+from pathlib import Path
+
+import pytest
+import torch
+
+optuna = pytest.importorskip(
+    "optuna", reason="dqnlab tune needs the extra: pip install -e '.[tune]'"
+)
+from optuna.trial import TrialState  # noqa: E402
+
+from dqnlab.config import resolve_config  # noqa: E402
+from dqnlab.errors import DqnlabError  # noqa: E402
+from dqnlab.run.rundir import prepare_run_dir  # noqa: E402
+from dqnlab.run.train import STOPPED_BY_HOOK, TrainResult  # noqa: E402
+from dqnlab.run.train import train as real_train  # noqa: E402
+from dqnlab.tune import trials as trials_module  # noqa: E402
+from dqnlab.tune.driver import shares, tune  # noqa: E402
+from dqnlab.tune.space import DEFAULT_SPACE  # noqa: E402
+from dqnlab.tune.study import TunePlan, open_study, trial_run_dir  # noqa: E402
+from tests.helpers import dqnlab_main  # noqa: E402
+
+CPU = torch.device("cpu")
+# Two evaluations of 50 steps in a budget of 300: a trial takes about a second.
+TINY = TunePlan(
+    env="CartPole-v1",
+    preset="classic",
+    steps=300,
+    space=DEFAULT_SPACE,
+    fixed={"eval_steps": 50, "heldout_transitions": 50},
+    evaluations=2,
+)
+
+
+def _fake_train(scores: dict[int, list[float]], seen: list[tuple[int, int]]):
+    """A train() that reports trial k's `scores[k]` at steps 100, 200... and stops when
+    told to, as the training loop does."""
+
+    def train(config, run_dir, device, progress, tensorboard, resume, on_evaluation):
+        number = int(run_dir.name.split("-")[1])
+        evaluations = []
+        for index, mean in enumerate(scores[number]):
+            evaluations.append(((index + 1) * 100, mean))
+            seen.append((number, (index + 1) * 100))
+            if on_evaluation((index + 1) * 100, mean):
+                return TrainResult(
+                    evaluations[-1][0],
+                    0,
+                    1.0,
+                    0.0,
+                    max(scores[number]),
+                    evaluations,
+                    0,
+                    interrupted=STOPPED_BY_HOOK,
+                )
+        return TrainResult(300, 0, 1.0, 0.0, max(scores[number]), evaluations, 0)
+
+    return train
+
+
+def test_a_trial_below_the_median_is_pruned_at_its_first_evaluation(
+    tmp_path: Path, monkeypatch
+) -> None:
+    seen: list[tuple[int, int]] = []
+    scores = {0: [10.0, 20.0, 30.0], 1: [12.0, 22.0, 32.0], 2: [1.0, 50.0, 60.0]}
+    monkeypatch.setattr(trials_module, "train", _fake_train(scores, seen))
+    study = optuna.create_study(
+        direction="maximize", pruner=optuna.pruners.MedianPruner(n_startup_trials=0)
+    )
+    states = [trials_module.run_trial(study, study.ask(), tmp_path, TINY, CPU) for _ in range(3)]
+    assert states == [TrialState.COMPLETE, TrialState.COMPLETE, TrialState.PRUNED]
+    assert [step for number, step in seen if number == 2] == [100]  # stopped there
+    assert study.trials[2].value == 1.0 and study.best_trial.value == 32.0  # the last mean
+
+
+def test_a_tiny_tune_writes_its_trials_best_preset_and_figures(tmp_path: Path) -> None:
+    study_dir = tmp_path / "study"
+    study = tune(study_dir, TINY, 3, CPU, "dqnlab tune --env CartPole-v1 --trials 3")
+    assert len(study.trials) == 3
+    with (study_dir / "trials.csv").open() as handle:
+        rows = list(csv.DictReader(handle))
+    assert [row["number"] for row in rows] == ["0", "1", "2"]
+    assert {"learning_rate", "batch_size", "state", "value", "duration_seconds"} <= set(rows[0])
+    assert json.loads((study_dir / "study.json").read_text())["env"] == "CartPole-v1"
+    assert (study_dir / "history.png").stat().st_size > 0
+    text = (study_dir / "best.toml").read_text()
+    assert text.startswith("# The best trial") and "# Study: dqnlab tune --env CartPole-v1" in text
+    # The preset trains: a few steps of `dqnlab train --preset best.toml`.
+    best = study.best_trial
+    config = resolve_config(str(study_dir / "best.toml"), env="CartPole-v1", total_steps=100)
+    assert config.learning_rate == best.params["learning_rate"]
+    assert config.batch_size == best.params["batch_size"]
+    prepare_run_dir(tmp_path / "again", force=False)
+    assert real_train(config, tmp_path / "again", CPU, progress=False).steps == 100
+
+
+def test_a_killed_tune_carries_on_with_no_trial_run_twice_and_none_lost(
+    tmp_path: Path, monkeypatch
+) -> None:
+    study_dir = tmp_path / "study"
+    tune(study_dir, TINY, 2, CPU, "dqnlab tune")
+
+    class Killed(Exception):
+        pass
+
+    def killed_at_the_second_evaluation(*args, on_evaluation, **kwargs):
+        def hook(step: int, mean: float) -> bool:
+            if step >= 300:
+                raise Killed  # as a kill: the checkpoint at step 150 stays, the trial RUNNING
+            return on_evaluation(step, mean)
+
+        return real_train(*args, on_evaluation=hook, **kwargs)
+
+    monkeypatch.setattr(trials_module, "train", killed_at_the_second_evaluation)
+    with pytest.raises(Killed):
+        tune(study_dir, TINY, 4, CPU, "dqnlab tune")
+    study = open_study(study_dir, TINY)
+    assert [t.state for t in study.trials][2] == TrialState.RUNNING
+    calls: list[tuple[str, bool]] = []
+
+    def recorded(config, run_dir, device, *, resume, **kwargs):
+        calls.append((run_dir.name, resume))
+        return real_train(config, run_dir, device, resume=resume, **kwargs)
+
+    monkeypatch.setattr(trials_module, "train", recorded)
+    study = tune(study_dir, TINY, 4, CPU, "dqnlab tune")
+    assert calls == [("trial-0002", True), ("trial-0003", False)]
+    assert len(study.trials) == 4 and not study.get_trials(states=(TrialState.RUNNING,))
+    with (trial_run_dir(study_dir, 2) / "evaluations.csv").open() as handle:
+        assert [row["step"] for row in csv.DictReader(handle)] == ["150", "300"]
+
+
+def test_a_study_dir_of_another_environment_is_refused_and_left_as_it_was(
+    tmp_path: Path,
+) -> None:
+    study_dir = tmp_path / "study"
+    open_study(study_dir, TINY)
+    before = sorted(path.name for path in study_dir.iterdir())
+    other = TunePlan(**{**TINY.__dict__, "env": "Acrobot-v1"})
+    with pytest.raises(DqnlabError) as error:
+        tune(study_dir, other, 1, CPU, "dqnlab tune")
+    assert "made for env 'CartPole-v1'" in str(error.value) and "\n" not in str(error.value)
+    assert sorted(path.name for path in study_dir.iterdir()) == before
+
+
+def test_the_command_refuses_zero_trials_in_one_line(tmp_path: Path, capsys, monkeypatch) -> None:
+    status, err = dqnlab_main(
+        capsys,
+        monkeypatch,
+        "tune",
+        "--env",
+        "CartPole-v1",
+        "--trials",
+        "0",
+        "--steps",
+        "300",
+        "--study-dir",
+        str(tmp_path / "s"),
+    )
+    assert status == 2 and err.strip() == "dqnlab: error: --trials 0: must be at least 1"
+    assert not (tmp_path / "s").exists()
+
+
+def test_the_command_without_optuna_says_how_to_install_it(capsys, monkeypatch) -> None:
+    monkeypatch.setitem(__import__("sys").modules, "optuna", None)
+    status, err = dqnlab_main(
+        capsys, monkeypatch, "tune", "--env", "CartPole-v1", "--trials", "1", "--steps", "300"
+    )
+    assert status == 2 and "pip install 'dqnlab[tune]'" in err and err.count("\n") == 1
+
+
+def test_trials_are_shared_out_among_jobs() -> None:
+    assert shares(5, 2) == [3, 2] and shares(1, 3) == [1] and shares(0, 2) == []
+
+
+def test_two_jobs_train_a_trial_each_on_one_thread(tmp_path: Path) -> None:
+    study = tune(tmp_path / "study", TINY, 2, CPU, "dqnlab tune --jobs 2", jobs=2)
+    assert sorted(t.state for t in study.trials) == [TrialState.COMPLETE] * 2
+    for number in (0, 1):
+        assert (
+            "threads = 1 "
+            in (trial_run_dir(tmp_path / "study", number) / "config.toml").read_text()
+        )
