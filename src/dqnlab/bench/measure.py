@@ -27,6 +27,23 @@ from dqnlab.algorithm.replay import ReplayMemory
 from dqnlab.run.state import TIMED_PARTS, TrainingState
 
 
+def fill_replay(replay: ReplayMemory, pool: np.ndarray, actions: int) -> None:
+    """Every slot of `replay` written with the frames of `pool` cycled (distinct-looking
+    observations), `actions` cycled, a reward of 1 every seventh step, in episodes of 1,000
+    steps, so that n-step windows meet episode ends as in play."""
+    for i in range(replay.capacity):
+        frame = pool[i % len(pool)]
+        if i % 1000 == 999:
+            replay.add_last(frame)
+        else:
+            replay.add(frame, i % actions, float(i % 7 == 0), False)
+
+
+def random_frames(replay: ReplayMemory, rng: np.random.Generator) -> np.ndarray:
+    """A pool of 64 random uint8 frames of the replay's frame shape."""
+    return rng.integers(0, 256, size=(64, *replay.frame_shape), dtype=np.uint8)
+
+
 def machine_figures(device: torch.device) -> dict[str, Any]:
     """What a figure depends on besides the code: versions, threads, and how loaded the
     machine was when the measurement began."""

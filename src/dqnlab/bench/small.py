@@ -34,7 +34,7 @@ from dqnlab.algorithm.agent import agent_for_input
 from dqnlab.algorithm.replay import ReplayMemory
 from dqnlab.algorithm.samplers import build_sampler
 from dqnlab.bench.dense import dense_figures
-from dqnlab.bench.measure import machine_figures, measure_training, median_update_ms
+from dqnlab.bench.measure import fill_replay, machine_figures, measure_training, median_update_ms
 from dqnlab.config import Config, resolve_config
 from dqnlab.envs.spaces import ObservationLayout, observation_layout
 from dqnlab.errors import ConfigError
@@ -130,7 +130,7 @@ def network_update_figures(
         sampler=build_sampler(config),
     )  # fmt: skip
     network.observation.seed(seed)
-    _fill(replay, layout, network.observation)
+    fill_replay(replay, _observations(layout, network.observation), 2)
     batch = replay.sample(config.replay_start_steps)  # prioritized replay's β at its start
     update_ms = median_update_ms(agent, batch, repeats)
     shape = "x".join(map(str, network.observation.shape))
@@ -145,18 +145,12 @@ def network_update_figures(
     }
 
 
-def _fill(replay: ReplayMemory, layout: ObservationLayout, space: gym.spaces.Box) -> None:
-    """Every slot written with a pool of 64 random observations of `space` stored as a run
-    stores them, cycled, in episodes of 1,000 steps, so that n-step windows meet episode
-    ends as in play (as `variants.py` fills its replays)."""
+def _observations(layout: ObservationLayout, space: gym.spaces.Box) -> np.ndarray:
+    """A pool of 64 random observations of `space`, stored as a run stores them."""
     pool = np.zeros((64, *layout.frame_shape), dtype=layout.frame_dtype)
     for frame in pool:
         layout.pack(space.sample(), frame)
-    for i in range(replay.capacity):
-        if i % 1000 == 999:
-            replay.add_last(pool[i % 64])
-        else:
-            replay.add(pool[i % 64], int(i % 2), float(i % 7 == 0), False)
+    return pool
 
 
 def training_against_sb3(

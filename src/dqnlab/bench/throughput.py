@@ -23,10 +23,12 @@ from dqnlab.bench.compression import measure_compression
 from dqnlab.bench.dense import dense_figures
 from dqnlab.bench.flops import matmul_figures, measure_matmul, update_flop_figures, update_flops
 from dqnlab.bench.measure import (
+    fill_replay,
     machine_figures,
     measure_training,
     median_sample_us,
     median_update_ms,
+    random_frames,
 )
 from dqnlab.bench.peers import peer_round, prepare_peers
 from dqnlab.config import Config, resolve_config
@@ -37,13 +39,6 @@ from dqnlab.run.state import TrainingState, replay_device
 
 def _resident_bytes() -> int:
     return psutil.Process().memory_info().rss
-
-
-def _fill(replay: ReplayMemory, rng: np.random.Generator) -> None:
-    """Fill every slot with distinct-looking frames (a pool of random ones, cycled)."""
-    pool = rng.integers(0, 256, size=(64, *replay.frame_shape), dtype=np.uint8)
-    for i in range(replay.capacity):
-        replay.add(pool[i % 64], int(i % 4), 0.0, False)
 
 
 def run_benchmark(
@@ -114,7 +109,7 @@ def _filled_replay(config: Config, device: torch.device, figures: dict[str, Any]
     on_device = replay_device(config, device, (84, 84), np.dtype(np.uint8))
     figures["replay_storage"] = "host" if on_device is None else f"host and {on_device}"
     replay = ReplayMemory(capacity, (84, 84), np.uint8, 4, 32, seed, device=on_device)
-    _fill(replay, np.random.default_rng(seed))
+    fill_replay(replay, random_frames(replay, np.random.default_rng(seed)), 4)
     figures["replay_resident_bytes"] = _resident_bytes() - before
     figures["replay_bytes_per_transition"] = replay.bytes_per_transition
     figures["replay_resident_bytes_per_transition"] = figures["replay_resident_bytes"] / capacity

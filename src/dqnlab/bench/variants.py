@@ -26,7 +26,14 @@ from dqnlab.algorithm.prioritized import measure_sampling
 from dqnlab.algorithm.replay import ReplayMemory
 from dqnlab.bench.dense import dense_figures
 from dqnlab.bench.flops import measure_matmul, update_flop_figures, update_flops
-from dqnlab.bench.measure import call_seconds, machine_figures, measure_training, median_update_ms
+from dqnlab.bench.measure import (
+    call_seconds,
+    fill_replay,
+    machine_figures,
+    measure_training,
+    median_update_ms,
+    random_frames,
+)
 from dqnlab.config import Config, preset_names, resolve_config
 from dqnlab.errors import ConfigError
 from dqnlab.run.lockstep import play_games
@@ -46,17 +53,6 @@ def parse_variants(text: str) -> list[str]:
             f"accepted: all, or a list of {', '.join(preset_names())}"
         )
     return names
-
-
-def _fill(replay: ReplayMemory, rng: np.random.Generator) -> None:
-    """Every slot written with distinct-looking frames (a cycled pool of random ones), in
-    episodes of 1,000 steps, so that n-step windows meet episode ends as in play."""
-    pool = rng.integers(0, 256, size=(64, *replay.frame_shape), dtype=np.uint8)
-    for i in range(replay.capacity):
-        if i % 1000 == 999:
-            replay.add_last(pool[i % 64])
-        else:
-            replay.add(pool[i % 64], int(i % 4), float(i % 7 == 0), False)
 
 
 def _sample(replay: ReplayMemory, config: Config) -> Any:
@@ -134,7 +130,7 @@ def _update_figures(preset: str, state: TrainingState, update_repeats: int) -> d
     matrix multiply timed right after; the state then taken past the replay start and the
     epsilon anneal, as for most of a run, and warmed up."""
     config, replay, agent = state.config, state.replay, state.agent
-    _fill(replay, np.random.default_rng(config.seed))
+    fill_replay(replay, random_frames(replay, np.random.default_rng(config.seed)), 4)
 
     def sample_and_tell() -> None:
         batch = _sample(replay, config)
