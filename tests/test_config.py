@@ -53,7 +53,8 @@ def test_every_shipped_preset_sets_every_field_and_is_valid() -> None:
     # The environment's own settings are the user's environment's, not a preset's.
     environment = {"env", "seed", "env_kwargs", "env_wrappers", "observation_images"}
     # `parts` holds the settings a user's part declares; the shipped parts declare none.
-    fields = {f.name for f in dataclasses.fields(Config)} - environment - {"parts"}
+    # `preset` records the name a preset is loaded by.
+    fields = {f.name for f in dataclasses.fields(Config)} - environment - {"parts", "preset"}
     for name in preset_names():
         assert fields - {"mlp_hidden_sizes", "adam_epsilon"} <= set(load_preset(name)), name
         resolve_config(name, env="pong")

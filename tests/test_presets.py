@@ -42,7 +42,8 @@ def resolved(name: str) -> Config:
 
 def differences(name: str) -> dict[str, tuple[object, object]]:
     nature, preset = resolved("nature").to_dict(), resolved(name).to_dict()
-    return {k: (nature[k], v) for k, v in preset.items() if nature[k] != v}
+    # `preset` records the name each was loaded by.
+    return {k: (nature[k], v) for k, v in preset.items() if nature[k] != v and k != "preset"}
 
 
 def header(name: str) -> str:

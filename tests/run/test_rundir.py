@@ -109,6 +109,10 @@ def test_kept_evaluation_networks_and_names(tmp_path: Path) -> None:
     (rundir.checkpoints_dir(tmp_path) / "evals" / "notes.txt").write_text("x")
     assert rundir.eval_network_steps(tmp_path) == [500, 2500]
     assert rundir.default_run_dir("module:Env", "nature", 3) == Path("runs/module_Env-nature-s3")
+    assert rundir.default_run_dir("Acrobot-v1", "tuned/Acrobot-v1", 1) == Path(
+        "runs/Acrobot-v1-tuned-s1"
+    )
+    assert rundir.default_run_dir("pong", "my/own.toml", 0) == Path("runs/pong-own-s0")
     assert rundir.default_sweep_dir("ALE/Pong-v5", ["a", "b"]) == Path("sweeps/ALE_Pong-v5-a+b")
 
 

@@ -188,3 +188,84 @@ def test_two_jobs_train_a_trial_each_on_one_thread(tmp_path: Path) -> None:
             "threads = 1 "
             in (trial_run_dir(tmp_path / "study", number) / "config.toml").read_text()
         )
+
+
+def test_a_trial_of_several_seeds_is_their_mean_and_is_pruned_on_its_first_seed(
+    tmp_path: Path, monkeypatch
+) -> None:
+    """With --seeds 2 each trial trains seeds 0 and 1 one after the other; the pruner sees
+    seed 0's evaluations alone (a pruner holds a trial's best value so far, so a good first
+    seed would shield a bad second one)."""
+    seen: list[tuple[str, int]] = []
+    scores = {  # (trial, seed): the means at steps 100, 200, 300
+        (0, 0): [10.0, 20.0, 30.0], (0, 1): [12.0, 22.0, 50.0],
+        (1, 0): [11.0, 21.0, 31.0], (1, 1): [1.0, 2.0, 3.0],  # a bad second seed: no pruning
+        (2, 0): [1.0, 40.0, 50.0], (2, 1): [30.0, 40.0, 50.0],  # below both at step 100
+    }  # fmt: skip
+
+    def train(config, run_dir, device, progress, tensorboard, resume, on_evaluation):
+        number = int(run_dir.name.split("-")[1])
+        evaluations = []
+        for index, mean in enumerate(scores[number, config.seed]):
+            evaluations.append(((index + 1) * 100, mean))
+            seen.append((run_dir.name, (index + 1) * 100))
+            if on_evaluation is not None and on_evaluation((index + 1) * 100, mean):
+                return TrainResult(300, 0, 1.0, 0.0, mean, evaluations, 0, STOPPED_BY_HOOK)
+        return TrainResult(300, 0, 1.0, 0.0, max(scores[number, config.seed]), evaluations, 0)
+
+    monkeypatch.setattr(trials_module, "train", train)
+    plan = TunePlan(**{**TINY.__dict__, "seeds": 2})
+    study = optuna.create_study(
+        direction="maximize", pruner=optuna.pruners.MedianPruner(n_startup_trials=0)
+    )
+    states = [trials_module.run_trial(study, study.ask(), tmp_path, plan, CPU) for _ in range(3)]
+    assert states == [TrialState.COMPLETE, TrialState.COMPLETE, TrialState.PRUNED]
+    assert study.trials[0].value == 40.0 and study.trials[1].value == 17.0  # (30 + 50) / 2
+    assert sorted(study.trials[1].intermediate_values) == [100, 200, 300]  # seed 0's
+    assert seen[-1] == ("trial-0002-s0", 100)  # pruned there: seed 1 never trained
+    assert study.trials[0].user_attrs["value_seed_1"] == 50.0
+
+
+def test_a_tiny_tune_of_two_seeds_keeps_a_run_per_seed_and_carries_on_a_killed_one(
+    tmp_path: Path, monkeypatch
+) -> None:
+    plan = TunePlan(**{**TINY.__dict__, "seeds": 2})
+    study_dir = tmp_path / "study"
+
+    class Killed(Exception):
+        pass
+
+    def killed_in_the_second_seed(config, run_dir, *args, on_evaluation, **kwargs):
+        def hook(step: int, mean: float) -> bool:
+            if config.seed == 1 and step >= 300:
+                raise Killed  # the trial RUNNING, seed 0's value recorded, seed 1 half done
+            return on_evaluation is not None and on_evaluation(step, mean)
+
+        return real_train(config, run_dir, *args, on_evaluation=hook, **kwargs)
+
+    monkeypatch.setattr(trials_module, "train", killed_in_the_second_seed)
+    with pytest.raises(Killed):
+        tune(study_dir, plan, 1, CPU, "dqnlab tune --seeds 2")
+    calls: list[tuple[str, bool]] = []
+
+    def recorded(config, run_dir, device, *, resume, **kwargs):
+        calls.append((run_dir.name, resume))
+        return real_train(config, run_dir, device, resume=resume, **kwargs)
+
+    monkeypatch.setattr(trials_module, "train", recorded)
+    study = tune(study_dir, plan, 1, CPU, "dqnlab tune --seeds 2")
+    assert calls == [("trial-0000-s1", True)]  # seed 0 is not trained again
+    last = []
+    for seed in (0, 1):
+        run = trial_run_dir(study_dir, 0, seed)
+        assert f"seed = {seed} " in (run / "config.toml").read_text()
+        with (run / "evaluations.csv").open() as handle:
+            last.append(float(list(csv.DictReader(handle))[-1]["mean"]))
+    assert study.trials[0].value == pytest.approx(sum(last) / 2)
+    with (study_dir / "trials.csv").open() as handle:
+        row = next(csv.DictReader(handle))
+    assert row["seed_values"] == f"0:{last[0]:.6g};1:{last[1]:.6g}"
+    assert "seed = 0 " in (study_dir / "best.toml").read_text()
+    # A study of one seed per trial is another plan.
+    with pytest.raises(DqnlabError, match="it differs in seeds"):
+        open_study(study_dir, TINY)

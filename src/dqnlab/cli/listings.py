@@ -17,13 +17,12 @@ def games() -> None:
 def presets(
     name: Annotated[str | None, typer.Argument(help="Print this preset's TOML")] = None,
 ) -> None:
-    """List the shipped presets, or print one (copy it, edit it, pass its path to --preset)."""
-    from importlib import resources
-
-    from dqnlab.config import load_preset, preset_names
+    """List the shipped presets (tuned/ENV-ID: the tuned settings for one environment id), or
+    print one (copy it, edit it, pass its path to --preset)."""
+    from dqnlab.config import load_preset, preset_names, preset_text
 
     if name is None:
         typer.echo(" ".join(preset_names()))
         return
     load_preset(name)  # validates the name
-    typer.echo((resources.files("dqnlab") / "presets" / f"{name}.toml").read_text(), nl=False)
+    typer.echo(preset_text(name), nl=False)

@@ -25,8 +25,9 @@ def train(
     preset: Annotated[
         str | None,
         typer.Option(
-            help=f"A shipped preset ({', '.join(preset_names())}; nature by default for Atari, "
-            "classic otherwise) or a .toml path"
+            help=f"A shipped preset ({', '.join(preset_names())}; by default nature for Atari, "
+            "the tuned settings for an id dqnlab has them for (tuned/ID), classic otherwise) "
+            "or a .toml path"
         ),
     ] = None,
     set_: Annotated[
@@ -52,10 +53,10 @@ def train(
 ) -> None:
     """Train a DQN; writes config, CSV logs, TensorBoard events and checkpoints to the run dir."""
     from dqnlab.config import parse_overrides, parse_pairs, resolve_config, with_env_arguments
-    from dqnlab.envs import check_env, is_atari
+    from dqnlab.envs import check_env, default_preset
     from dqnlab.run.rundir import default_run_dir, prepare_run_dir
 
-    preset = preset or ("nature" if is_atari(env) else "classic")
+    preset = preset or default_preset(env)
     config = resolve_config(
         preset, parse_overrides(set_ or []), env=env, total_steps=steps, seed=seed
     )

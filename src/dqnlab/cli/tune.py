@@ -44,7 +44,13 @@ Jobs = Annotated[
     typer.Option(help="Trials trained at once, each in its own process with one PyTorch thread"),
 ]
 SamplerSeed = Annotated[
-    int, typer.Option(help="Seed of the sampler (TPE); each trial's run seed is the preset's")
+    int, typer.Option(help="Seed of the sampler (TPE); a trial's run seeds are set by --seeds")
+]
+Seeds = Annotated[
+    int,
+    typer.Option(
+        help="Runs per trial, on the preset's seed and the next ones; the objective is their mean"
+    ),
 ]
 StudyDir = Annotated[
     Path | None,
@@ -65,6 +71,7 @@ def tune(
     pruner: Pruner = "median",
     jobs: Jobs = 1,
     seed: SamplerSeed = 0,
+    seeds: Seeds = 1,
     study_dir: StudyDir = None,
     device: Device = "auto",
 ) -> None:
@@ -73,6 +80,7 @@ def tune(
 
     * `dqnlab tune --env CartPole-v1 --trials 50 --steps 50000`
     * `dqnlab tune --env CartPole-v1 --trials 20 --steps 20000 --space space.toml --jobs 2`
+    * `dqnlab tune --env Acrobot-v1 --trials 20 --steps 100000 --seeds 3`
 
     A killed tune is carried on by the same command: its unfinished trial resumes from
     its run's newest checkpoint."""
@@ -87,13 +95,13 @@ def tune(
     from dqnlab.tune.space import check_space, load_space
     from dqnlab.tune.study import BEST_FILE, TunePlan
 
-    _check_counts(trials, steps, evaluations, jobs, pruner)
+    _check_counts(trials, steps, evaluations, jobs, pruner, seeds)
     preset = preset or ("nature" if is_atari(env) else "classic")
     fixed = parse_overrides(set_ or [])
     searched = load_space(space)
     check_space(searched, preset, fixed, env, steps)
     plan = TunePlan(env=env, preset=preset, steps=steps, space=searched, fixed=fixed,
-                    evaluations=evaluations, pruner=pruner, seed=seed)  # fmt: skip
+                    evaluations=evaluations, pruner=pruner, seed=seed, seeds=seeds)  # fmt: skip
     study_dir = study_dir or Path("studies") / f"{safe_name(env)}-{safe_name(Path(preset).stem)}"
     torch_device = resolve_device(device)
     typer.echo(f"dqnlab: tuning {env} from preset {preset}: {trials} trials of {steps} steps "
@@ -103,9 +111,11 @@ def tune(
     _say_result(study, study_dir / BEST_FILE)
 
 
-def _check_counts(trials: int, steps: int, evaluations: int, jobs: int, pruner: str) -> None:
+def _check_counts(
+    trials: int, steps: int, evaluations: int, jobs: int, pruner: str, seeds: int
+) -> None:
     """The numbers of the command line, before anything is written."""
-    for option, value in (("--trials", trials), ("--steps", steps),
+    for option, value in (("--trials", trials), ("--steps", steps), ("--seeds", seeds),
                           ("--evaluations", evaluations), ("--jobs", jobs)):  # fmt: skip
         if value < 1:
             raise DqnlabError(f"{option} {value}: must be at least 1")

@@ -17,9 +17,12 @@ from dqnlab.config.files import (
     parse_pairs,
     parse_value,
     preset_names,
+    preset_text,
     resolve_config,
     setting_text,
     toml_value,
+    tuned_envs,
+    tuned_preset,
     with_env_arguments,
 )
 from dqnlab.config.fingerprint import (
@@ -55,8 +58,11 @@ __all__ = [
     "parse_pairs",
     "parse_value",
     "preset_names",
+    "preset_text",
     "resolve_config",
     "setting_text",
     "toml_value",
+    "tuned_envs",
+    "tuned_preset",
     "with_env_arguments",
 ]

@@ -24,10 +24,36 @@ from dqnlab.config.validation import USER_PARTS
 from dqnlab.errors import ConfigError
 from dqnlab.parts import check_head_options, load_object, part_settings
 
+# Tuned settings for one environment id, as rl-baselines3-zoo keeps its hyperparameters by
+# id: presets/tuned/ID.toml, the preset `dqnlab train --env ID` takes when none is given.
+TUNED = "tuned"
+
 
 def preset_names() -> list[str]:
+    """The shipped presets: the family's by name, then the tuned ones as tuned/ENV-ID."""
     files = resources.files("dqnlab").joinpath("presets").iterdir()
-    return sorted(f.name.removesuffix(".toml") for f in files if f.name.endswith(".toml"))
+    names = sorted(f.name.removesuffix(".toml") for f in files if f.name.endswith(".toml"))
+    return names + [f"{TUNED}/{env}" for env in tuned_envs()]
+
+
+def tuned_envs() -> list[str]:
+    """The environment ids dqnlab ships tuned settings for."""
+    folder = resources.files("dqnlab") / "presets" / TUNED
+    if not folder.is_dir():
+        return []
+    return sorted(
+        f.name.removesuffix(".toml") for f in folder.iterdir() if f.name.endswith(".toml")
+    )
+
+
+def tuned_preset(env: str) -> str | None:
+    """tuned/ENV-ID when dqnlab ships tuned settings for this environment id, else None."""
+    return f"{TUNED}/{env}" if env in tuned_envs() else None
+
+
+def preset_text(name: str) -> str:
+    """A shipped preset's TOML text (`name` as `preset_names` gives it)."""
+    return (resources.files("dqnlab") / "presets" / f"{name}.toml").read_text()
 
 
 def load_preset(name_or_path: str) -> dict[str, Any]:
@@ -36,7 +62,7 @@ def load_preset(name_or_path: str) -> dict[str, Any]:
     if name_or_path.endswith(".toml") and path.is_file():
         text = path.read_text()
     elif name_or_path in preset_names():
-        text = (resources.files("dqnlab") / "presets" / f"{name_or_path}.toml").read_text()
+        text = preset_text(name_or_path)
     else:
         raise ConfigError(
             f"unknown preset {name_or_path!r}; accepted: {', '.join(preset_names())} "
@@ -150,7 +176,10 @@ def resolve_config(preset: str, overrides: dict[str, Any] | None = None, **expli
     user's part declares are filled in with their defaults (`with_part_settings`)."""
     values = load_preset(preset)
     given = {**(overrides or {}), **{k: v for k, v in explicit.items() if v is not None}}
+    if "preset" in given:
+        raise ConfigError("preset is where the settings came from: choose it with --preset")
     values.update(given)
+    values.setdefault("preset", preset)  # a saved config.toml keeps the record it has
     _check_names(values, "the configuration")
     values = _budget_scaled(_nest_part_settings(values), given)
     config = Config(**{name: _coerce(name, value) for name, value in values.items()})

@@ -17,6 +17,7 @@ RESUMABLE_CHANGES = (
     "checkpoints_kept", "on_checkpoint_error", "eval_networks_kept", "replay_storage",
     "replay_compression", "heldout_transitions", "update_graph", "periodic_eval_workers",
     "final_eval_network", "final_eval_after_training", "threads",
+    "preset",  # a record of where the settings came from, not a setting of the training
 )  # fmt: skip
 
 

@@ -48,6 +48,12 @@ class Config:
         "part flattened into the vector)",
     )
     seed: int = _setting(0, "Seeds every random stream (Python, NumPy, PyTorch, environments)")
+    preset: str = _setting(
+        "",
+        "The preset the settings started from, recorded when they are resolved: a shipped "
+        "name, tuned/ENV-ID for the tuned settings `train` chose by the environment id, or a "
+        "file's path (a record: the values are the other settings)",
+    )
     # Atari pipeline (ignored for other environments).
     action_repeat_frames: int = _setting(4, "Raw frames each agent action is repeated for")
     frame_pooling: str = _setting(

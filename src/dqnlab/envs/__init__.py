@@ -22,7 +22,7 @@ import gymnasium as gym
 import numpy as np
 from gymnasium.envs.registration import find_highest_version, parse_env_id
 
-from dqnlab.config import Config
+from dqnlab.config import Config, tuned_preset
 from dqnlab.envs.atari import AtariEnv, game_names
 from dqnlab.envs.generic import GymnasiumEnv
 from dqnlab.envs.registry import load_entry_points, unknown_env_message
@@ -52,6 +52,14 @@ class Environment(Protocol):
 
 def is_atari(env_name: str) -> bool:
     return env_name in game_names()
+
+
+def default_preset(env_name: str) -> str:
+    """The preset a run of this environment gets when none is given: `nature` for an Atari
+    game, the tuned settings for an id dqnlab has them for (tuned/ID), `classic` otherwise."""
+    if is_atari(env_name):
+        return "nature"
+    return tuned_preset(env_name) or "classic"
 
 
 def make_env(

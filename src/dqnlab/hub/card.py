@@ -23,7 +23,7 @@ from dqnlab import __version__
 from dqnlab.analysis.report.reference import family_parts
 from dqnlab.analysis.report.scores import load_reference_scores
 from dqnlab.config import Config, differing_settings, preset_names, resolve_config, setting_text
-from dqnlab.envs import is_atari
+from dqnlab.envs import default_preset, is_atari
 from dqnlab.run import exported
 from dqnlab.run.rundir import safe_name, with_recorded_network
 
@@ -78,7 +78,7 @@ def nearest_preset(config: Config) -> tuple[str, list[str]]:
     """The shipped preset `config` differs from in the fewest settings (ties: the one a
     run of its environment gets by default), and those settings, in `Config` order,
     less those `dqnlab train` takes as options of their own."""
-    default = "nature" if is_atari(config.env) else "classic"
+    default = default_preset(config.env)
     candidates = []
     for name in [default, *(n for n in preset_names() if n != default)]:
         # At the run's budget: a preset's budget-scaled settings (epsilon_decay_fraction)

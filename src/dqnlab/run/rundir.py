@@ -162,7 +162,9 @@ def safe_name(text: str) -> str:
 
 
 def default_run_dir(env: str, preset: str, seed: int) -> Path:
-    return Path("runs") / f"{safe_name(env)}-{Path(preset).stem}-s{seed}"
+    """runs/ENV-PRESET-sSEED: a preset file by its stem, tuned settings as `tuned`."""
+    name = "tuned" if preset.startswith("tuned/") else Path(preset).stem
+    return Path("runs") / f"{safe_name(env)}-{name}-s{seed}"
 
 
 def default_sweep_dir(env: str, keys: Sequence[str]) -> Path:

@@ -164,7 +164,7 @@ def plan_grid(
     and validated before anything starts, `env_kwargs` and `env_wrappers` (--env-kwarg,
     --wrapper) added to its own. Run names are ENV-SETTINGS-sSEED (`ablate`, one
     environment: SETTINGS-sSEED)."""
-    from dqnlab.envs import is_atari
+    from dqnlab.envs import default_preset
 
     if seeds <= 0:
         raise ConfigError(f"--seeds {seeds} must be positive")
@@ -177,10 +177,10 @@ def plan_grid(
         raise ConfigError(
             f"--vary cannot vary {', '.join(sorted(fixed))}: use --seeds, --env, --steps"
         )
-    presets = {preset or ("nature" if is_atari(env) else "classic") for env in envs}
+    presets = {preset or default_preset(env) for env in envs}
     sweep = Sweep(sweep_dir, preset=",".join(sorted(presets)), vary_keys=tuple(varied))
     for env in envs:
-        env_preset = preset or ("nature" if is_atari(env) else "classic")
+        env_preset = preset or default_preset(env)
         for combination in itertools.product(*(variation.choices for variation in variations)):
             settings = {
                 key: value

@@ -9,7 +9,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from dqnlab.config import atari100k_departures, parse_overrides, parse_pairs
-from dqnlab.envs import check_env, is_atari
+from dqnlab.envs import check_env, default_preset
 from dqnlab.errors import DqnlabError
 from dqnlab.run.rundir import default_sweep_dir
 from dqnlab.sweeps.ablate import default_jobs, plan_sweep
@@ -104,7 +104,7 @@ def plan_ablation_options(
     wrappers: Sequence[str] = (),
 ) -> Sweep:
     """`dqnlab ablate`'s options checked: the environment, the --vary and --set texts, the
-    default preset (nature for Atari, classic otherwise) and sweep directory
+    default preset (`envs.default_preset`) and sweep directory
     (sweeps/ENV-KEYS), the grid (`ablate.plan_sweep`), the environment of each run (with
     --env-kwarg and --wrapper added) and the directory it goes into."""
     variations = [parse_variation(text) for text in vary]
@@ -113,7 +113,7 @@ def plan_ablation_options(
     sweep = plan_sweep(
         env,
         variations,
-        preset=preset or ("nature" if is_atari(env) else "classic"),
+        preset=preset or default_preset(env),
         overrides=parse_overrides(settings),
         seeds=seeds,
         first_seed=first_seed,

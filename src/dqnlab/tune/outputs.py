@@ -22,11 +22,12 @@ from dqnlab.tune.study import (
     IMPORTANCES_FIGURE,
     TRIALS_TABLE,
     study_path,
-    trial_run_dir,
+    trial_run_dirs,
 )
 
-# Left out of best.toml: the environment is the command's (`--env`), as in every preset.
-NOT_IN_PRESET = ("env",)
+# Left out of best.toml: the environment is the command's (`--env`), as in every preset, and
+# the preset a run started from is recorded by the run that loads this one.
+NOT_IN_PRESET = ("env", "preset")
 
 
 def write_outputs(study: optuna.Study, study_dir: Path, command: str) -> list[Path]:
@@ -40,30 +41,41 @@ def write_outputs(study: optuna.Study, study_dir: Path, command: str) -> list[Pa
 
 
 def write_trials_table(study: optuna.Study, study_dir: Path) -> Path:
-    """One row per trial: number, state, value, duration and each searched setting."""
+    """One row per trial: number, state, value (with several seeds, their mean, and each
+    seed's in seed_values), duration and each searched setting."""
     trials = study.get_trials(deepcopy=False)
     names = sorted({name for trial in trials for name in trial.params})
     path = study_path(study_dir, TRIALS_TABLE)
     partial = path.with_suffix(".csv.partial")
     with partial.open("w", newline="") as handle:
         writer = csv.writer(handle)
-        writer.writerow(["number", "state", "value", "duration_seconds", *names, "error"])
+        writer.writerow(
+            ["number", "state", "value", "seed_values", "duration_seconds", *names, "error"]
+        )
         for trial in trials:
             duration = trial.duration.total_seconds() if trial.duration is not None else ""
             writer.writerow(
                 [trial.number, trial.state.name, "" if trial.value is None else trial.value,
-                 duration, *(trial.params.get(name, "") for name in names),
+                 _seed_values(trial), duration, *(trial.params.get(name, "") for name in names),
                  trial.user_attrs.get("error", "")]
             )  # fmt: skip
     partial.replace(path)
     return path
 
 
+def _seed_values(trial: optuna.trial.FrozenTrial) -> str:
+    """SEED:VALUE;... for the seeds of a trial of several that finished, else empty."""
+    seeds = trial.user_attrs.get("seeds") or []
+    values = {seed: trial.user_attrs.get(f"value_seed_{seed}") for seed in seeds}
+    return ";".join(f"{seed}:{value:.6g}" for seed, value in values.items() if value is not None)
+
+
 def write_best_preset(study: optuna.Study, study_dir: Path, command: str) -> Path:
     """The best complete trial's settings as its run resolved them (config.toml), every
     setting but the environment, with the study's command and the date in a header."""
     best = study.best_trial
-    config = load_run_config(trial_run_dir(study_dir, best.number))
+    seeds = best.user_attrs.get("seeds")  # a study of one seed per trial may not record it
+    config = load_run_config(trial_run_dirs(study_dir, best.number, seeds or [0])[0])
     path = study_path(study_dir, BEST_FILE)
     partial = path.with_suffix(".toml.partial")
     partial.write_text(preset_text(config, best, command))

@@ -4,7 +4,8 @@ Optuna study in a journal file beside it, so that a killed tune carries on.
 
     STUDY_DIR/study.json            the plan; a tune with another one is refused
     STUDY_DIR/journal.log           Optuna's JournalStorage (a file with a lock beside it)
-    STUDY_DIR/trials/trial-NNNN/    each trial: a dqnlab run directory
+    STUDY_DIR/trials/trial-NNNN/    each trial: a dqnlab run directory (with --seeds K > 1,
+                                    one per seed: trial-NNNN-sSEED)
     STUDY_DIR/best.toml             the best trial's settings as a preset (`outputs.py`)
     STUDY_DIR/trials.csv            one row per trial
     STUDY_DIR/history.png, importances.png   Optuna's figures
@@ -32,13 +33,16 @@ HISTORY_FIGURE = "history.png"
 IMPORTANCES_FIGURE = "importances.png"
 STUDY_NAME = "dqnlab-tune"
 # What must match for a study directory to be carried on (the trial count may grow).
-PLAN_KEYS = ("env", "preset", "steps", "fixed", "space", "evaluations", "pruner")
+PLAN_KEYS = ("env", "preset", "steps", "fixed", "space", "evaluations", "pruner", "seeds")
+# What a study.json written before a key existed holds for it.
+PLAN_DEFAULTS = {"seeds": 1}
 
 
 @dataclasses.dataclass(frozen=True)
 class TunePlan:
     """What a study searches; every trial is the preset with `fixed`, then its own draw
-    from `space`, trained for `steps` agent steps and evaluated `evaluations` times."""
+    from `space`, trained for `steps` agent steps and evaluated `evaluations` times, on
+    `seeds` run seeds (the preset's seed and the next ones), its objective their mean."""
 
     env: str
     preset: str
@@ -48,6 +52,7 @@ class TunePlan:
     evaluations: int = 10
     pruner: str = "median"
     seed: int = 0  # the sampler's
+    seeds: int = 1  # runs per trial
 
     def record(self) -> dict[str, Any]:
         """The plan as study.json holds it."""
@@ -59,6 +64,7 @@ class TunePlan:
             "space": {entry.name: entry.as_dict() for entry in self.space},
             "evaluations": self.evaluations,
             "pruner": self.pruner,
+            "seeds": self.seeds,
         }
 
 
@@ -67,8 +73,21 @@ def study_path(study_dir: Path, name: str) -> Path:
     return study_dir / name
 
 
-def trial_run_dir(study_dir: Path, number: int) -> Path:
-    return study_dir / TRIALS_DIR / f"trial-{number:04d}"
+def trials_dir(study_dir: Path) -> Path:
+    return study_dir / TRIALS_DIR
+
+
+def trial_run_dir(study_dir: Path, number: int, seed: int | None = None) -> Path:
+    """A trial's run directory: trial-NNNN, or trial-NNNN-sSEED for one of several seeds."""
+    suffix = "" if seed is None else f"-s{seed}"
+    return trials_dir(study_dir) / f"trial-{number:04d}{suffix}"
+
+
+def trial_run_dirs(study_dir: Path, number: int, seeds: list[int]) -> list[Path]:
+    """Each of a trial's runs: one seed alone in trial-NNNN, several in trial-NNNN-sSEED."""
+    if len(seeds) == 1:
+        return [trial_run_dir(study_dir, number)]
+    return [trial_run_dir(study_dir, number, seed) for seed in seeds]
 
 
 def check_study_dir(study_dir: Path, plan: TunePlan) -> bool:
@@ -89,7 +108,7 @@ def check_study_dir(study_dir: Path, plan: TunePlan) -> bool:
     except (OSError, ValueError) as error:
         raise DqnlabError(f"{record_path} cannot be read: {error}") from None
     wanted = json.loads(json.dumps(plan.record()))  # as JSON reads it back (tuples: lists)
-    differing = [key for key in PLAN_KEYS if saved.get(key) != wanted[key]]
+    differing = [key for key in PLAN_KEYS if saved.get(key, PLAN_DEFAULTS.get(key)) != wanted[key]]
     if differing:
         shown = ", ".join(f"{key} {saved.get(key)!r}" for key in differing if key != "space")
         shown = shown or "another search space"

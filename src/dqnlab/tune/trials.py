@@ -1,10 +1,15 @@
-"""The trials of a study: each one a dqnlab run directory trained as `dqnlab train` trains
-it, told its periodic evaluations to the pruner, and its objective told to the study.
+"""The trials of a study: each one a dqnlab run directory (or one per seed, with `seeds` >
+1) trained as `dqnlab train` trains it, told its periodic evaluations to the pruner, and
+its objective told to the study.
 
 The objective is the mean score of the run's last periodic evaluation (what
 rl-baselines3-zoo reports: the last evaluation's mean, not the best one, which would favour
-lucky peaks). A trial the pruner stops is stopped as a stop request stops a run (a
-checkpoint, then the end) and recorded PRUNED with its last evaluation's mean.
+lucky peaks); with several seeds, the mean over them, trained one after the other. The
+pruner sees the first seed's evaluations alone: Optuna's pruners hold a trial's best value
+so far against the others' at the same step, so a good first seed would shield a bad
+second one whatever steps it is reported at. A trial the pruner stops is stopped as a stop
+request stops a run (a checkpoint, then the end) and recorded PRUNED with its last
+evaluation's mean.
 
 Resume: a trial left RUNNING by a tune that was killed is carried on where its run
 stopped (its newest checkpoint, the same Optuna trial, the same settings) before any new
@@ -14,6 +19,8 @@ directory another process trains now (its lease is live: a parallel job) is left
 
 from __future__ import annotations
 
+import dataclasses
+import statistics
 from pathlib import Path
 from typing import Any
 
@@ -27,7 +34,7 @@ from dqnlab.run.lease import lease_is_live
 from dqnlab.run.rundir import is_run_dir, load_run_config, prepare_run_dir
 from dqnlab.run.train import STOPPED_BY_HOOK, TrainResult, train
 from dqnlab.tune.space import suggest
-from dqnlab.tune.study import TunePlan, trial_run_dir
+from dqnlab.tune.study import TunePlan, trial_run_dirs, trials_dir
 
 
 class TuneStopped(DqnlabError):
@@ -56,7 +63,13 @@ def trial_config(plan: TunePlan, overrides: dict[str, Any], threads: int | None)
 def stale_trials(study: optuna.Study, study_dir: Path) -> list[optuna.trial.FrozenTrial]:
     """RUNNING trials no process trains now: left so by a tune that was killed."""
     running = study.get_trials(deepcopy=False, states=(TrialState.RUNNING,))
-    return [t for t in running if not lease_is_live(trial_run_dir(study_dir, t.number))]
+    return [trial for trial in running if not _trained_now(study_dir, trial.number)]
+
+
+def _trained_now(study_dir: Path, number: int) -> bool:
+    """Whether a process trains one of the trial's runs now (its lease is live)."""
+    runs = trials_dir(study_dir).glob(f"trial-{number:04d}*")
+    return any(lease_is_live(run) for run in runs)
 
 
 def run_trials(
@@ -88,13 +101,48 @@ def run_trial(
     device: torch.device,
     threads: int | None = None,
 ) -> TrialState:
-    """Train one trial's run (from its newest checkpoint if it has one), report its
-    evaluations to the pruner, and tell the study how it ended."""
-    run_dir = trial_run_dir(study_dir, trial.number)
+    """Train one trial's runs, one seed after the other (each from its newest checkpoint if
+    it has one; a seed whose value the trial recorded already is not trained again), report
+    their evaluations to the pruner, and tell the study how the trial ended."""
     try:
-        config, resume = _prepared_run(trial, run_dir, plan, threads)
+        base = trial_config(plan, suggest(trial, plan.space, plan.steps), threads)
     except DqnlabError as error:
         return _failed(study, trial, error)
+    seeds = [base.seed + k for k in range(plan.seeds)]
+    trial.set_user_attr("seeds", seeds)
+    values: list[float] = []
+    runs = trial_run_dirs(study_dir, trial.number, seeds)
+    for k, (seed, run_dir) in enumerate(zip(seeds, runs, strict=True)):
+        done = trial.user_attrs.get(f"value_seed_{seed}")
+        if done is None:
+            config = dataclasses.replace(base, seed=seed)
+            ended = _train_one(trial, run_dir, config, pruned=k == 0, device=device)
+            if isinstance(ended, Exception):
+                return _failed(study, trial, ended)
+            if isinstance(ended, TrialState):
+                study.tell(trial, state=ended)
+                return ended
+            done = ended
+            if plan.seeds > 1:
+                trial.set_user_attr(f"value_seed_{seed}", done)
+        values.append(done)
+    study.tell(trial, statistics.fmean(values))
+    return TrialState.COMPLETE
+
+
+def _train_one(
+    trial: optuna.trial.Trial, run_dir: Path, config: Config, pruned: bool, device: torch.device
+) -> float | TrialState | DqnlabError:
+    """One run of the trial: its last evaluation's mean, PRUNED, or the error that failed it;
+    its evaluations told to the pruner when `pruned`. A run directory that holds the run
+    already (a killed tune's) is resumed with the settings it was started with."""
+    try:
+        if is_run_dir(run_dir):
+            config, resume = load_run_config(run_dir), True
+        else:
+            resume = prepare_run_dir(run_dir, force=False, config=config)
+    except DqnlabError as error:
+        return error
 
     def report(step: int, mean: float) -> bool:
         trial.report(mean, step)
@@ -102,38 +150,23 @@ def run_trial(
 
     try:
         result = train(config, run_dir, device, progress=False, tensorboard=False,
-                       resume=resume, on_evaluation=report)  # fmt: skip
+                       resume=resume, on_evaluation=report if pruned else None)  # fmt: skip
     except DqnlabError as error:
-        return _failed(study, trial, error)
-    return _told(study, trial, result)
+        return error
+    return _ended(trial, result)
 
 
-def _prepared_run(
-    trial: optuna.trial.Trial, run_dir: Path, plan: TunePlan, threads: int | None
-) -> tuple[Config, bool]:
-    """The trial's settings and whether its run is carried on: a run directory that holds
-    a run already (a killed tune's) is resumed with the settings it was started with."""
-    if is_run_dir(run_dir):
-        config = load_run_config(run_dir)
-        return config, True
-    config = trial_config(plan, suggest(trial, plan.space, plan.steps), threads)
-    return config, prepare_run_dir(run_dir, force=False, config=config)
-
-
-def _told(study: optuna.Study, trial: optuna.trial.Trial, result: TrainResult) -> TrialState:
+def _ended(trial: optuna.trial.Trial, result: TrainResult) -> float | TrialState | DqnlabError:
     if result.interrupted == STOPPED_BY_HOOK:
-        study.tell(trial, state=TrialState.PRUNED)
         return TrialState.PRUNED
     if result.interrupted is not None:
         raise TuneStopped(result.interrupted, trial.number)  # the trial stays RUNNING
     if not result.evaluations:
-        error = DqnlabError(
+        return DqnlabError(
             f"no periodic evaluation ran in {result.steps} steps (replay_start_steps is "
             "past the last one): give more --steps or search a smaller replay start"
         )
-        return _failed(study, trial, error)
-    study.tell(trial, result.evaluations[-1][1])
-    return TrialState.COMPLETE
+    return result.evaluations[-1][1]
 
 
 def _failed(study: optuna.Study, trial: optuna.trial.Trial, error: DqnlabError) -> TrialState:
