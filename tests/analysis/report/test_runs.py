@@ -13,6 +13,7 @@ from dqnlab.analysis.report import (
     RunResults,
     find_runs,
     group_runs,
+    load_run,
     write_report,
 )
 from dqnlab.config import resolve_config
@@ -69,6 +70,23 @@ def test_a_sweep_directory_stands_for_its_runs(cartpole_sweep: Path, tmp_path: P
     runs = find_runs([cartpole_sweep])
     assert len(runs) == 3 and all(path.parent == cartpole_sweep for path in runs)
     assert find_runs([cartpole_sweep, runs[1]]) == runs  # a run named twice counts once
+
+
+def test_a_run_kept_without_its_checkpoints_is_as_far_as_its_final_evaluation(
+    cartpole_sweep: Path, tmp_path: Path
+) -> None:
+    """docs/atari100k-results/runs/ keeps each run's config, episodes and final evaluation
+    alone: the run counts as trained to the step of the network its evaluation played."""
+    import json
+    import shutil
+
+    trained = find_runs([cartpole_sweep])[0]
+    kept = tmp_path / trained.name
+    shutil.copytree(trained, kept, ignore=shutil.ignore_patterns("checkpoints"))
+    total = load_run(trained).config.total_steps
+    assert load_run(trained).finished and load_run(kept).steps == 0
+    (kept / "final_evaluation.json").write_text(json.dumps({"checkpoint_step": total}))
+    assert load_run(kept).steps == total and load_run(kept).finished
 
 
 @pytest.mark.parametrize("make", [lambda root: root, lambda root: root / "missing"])

@@ -120,9 +120,14 @@ def load_run(run_dir: Path) -> RunResults:
 def _trained_steps(run_dir: Path) -> int:
     """Agent steps of a run's newest checkpoint; for an exported folder, of the run's when
     it was exported (results.json's `trained_steps`; an older export has none: then the
-    network's own step, the least the run had trained)."""
+    network's own step, the least the run had trained); for a run whose checkpoints are
+    gone (its small files kept, as docs/ keeps a benchmark's), the step of the network its
+    final evaluation played, likewise the least it had trained."""
     if not exported.is_exported_dir(run_dir):
-        return rundir.network_step(run_dir, "last") or 0
+        step = rundir.network_step(run_dir, "last")
+        if step is None:
+            step = (rundir.load_final_evaluation(run_dir) or {}).get("checkpoint_step")
+        return int(step or 0)
     results = rundir.read_json_file(run_dir / exported.RESULTS_FILE) or {}
     if results.get("trained_steps") is not None:
         return int(results["trained_steps"])
