@@ -278,28 +278,42 @@ def test_a_stop_signal_saves_the_actor_between_rounds_and_resumes(tmp_path: Path
     assert_same_run(reference, resumed)
 
 
-# Seed 1 (2026-12-03): its periodic evaluations reach 500 from step 35,000, but the best
-# network scores 401.9 ± 120.1 over the 20 final games, where the sequential loop's seed 1
-# scores 500; seeds 3 and 4, run by hand once, scored as in docs/benchmark.md.
-SEED_1 = pytest.mark.xfail(reason="best network 401.9 over 20 games on seed 1", strict=False)
+# Five seeds each way, so that one unlucky seed neither fails the test nor hides a real
+# difference (until 2026-12-05 this was three seeds alone with seed 1 an expected failure:
+# its best network scored 401.9 ± 120.1 over 20 games where the sequential loop's scored 500).
+COMPARED_SEEDS = range(5)
 
 
-@pytest.mark.slow
-@pytest.mark.parametrize("seed", [0, pytest.param(1, marks=SEED_1), 2])
-def test_acting_while_learning_solves_cartpole(tmp_path: Path, seed: int) -> None:
-    """The classic preset with an actor thread (K = 4) solves CartPole as the sequential
-    loop does (tests/test_learning.py), under the same criterion."""
+def _cartpole_score(tmp_path: Path, seed: int, concurrency: str) -> float:
+    """The best network's mean over 20 games of the classic preset on CartPole-v1."""
     from dqnlab.run.evaluate import final_evaluation
     from dqnlab.run.rundir import prepare_run_dir
     from dqnlab.run.train import train
 
-    config = resolve_config("classic", env="CartPole-v1", seed=seed, concurrency="actor-learner")
-    run = tmp_path / f"cartpole-actor-learner-{seed}"
+    config = resolve_config("classic", env="CartPole-v1", seed=seed, concurrency=concurrency)
+    run = tmp_path / f"cartpole-{concurrency}-{seed}"
     prepare_run_dir(run, force=False)
     trained = train(config, run, CPU, progress=False, tensorboard=False)
-    result, _ = final_evaluation(run, "best", 20, seed=1000 + seed, device=CPU)
-    first_solved = next((step for step, mean in trained.evaluations if mean >= 475), None)
-    print(f"actor-learner, seed {seed}: first periodic evaluation >= 475 at step "
-          f"{first_solved}; final 20 games {result.mean:.1f} ± {result.std:.1f}")  # fmt: skip
     assert trained.steps == config.total_steps
-    assert result.mean >= 475
+    result, _ = final_evaluation(run, "best", 20, seed=1000 + seed, device=CPU)
+    return result.mean
+
+
+@pytest.mark.slow
+def test_acting_while_learning_learns_cartpole_as_the_sequential_loop_does(tmp_path: Path) -> None:
+    """The classic preset with an actor thread (K = 4) against the sequential loop, five seeds
+    each: the actor-learner's scores are not stochastically lower (one-sided Mann-Whitney U,
+    5%: with five against five it detects a shift that puts most of its scores below the
+    sequential ones), and most of its seeds solve CartPole (>= 475 over 20 games)."""
+    from scipy.stats import mannwhitneyu
+
+    scores = {
+        concurrency: [_cartpole_score(tmp_path, seed, concurrency) for seed in COMPARED_SEEDS]
+        for concurrency in ("none", "actor-learner")
+    }
+    print({name: [round(score, 1) for score in values] for name, values in scores.items()})
+    sequential, actor_learner = scores["none"], scores["actor-learner"]
+    test = mannwhitneyu(actor_learner, sequential, alternative="less")
+    print(f"one-sided Mann-Whitney U: p = {test.pvalue:.3f}")
+    assert test.pvalue >= 0.05
+    assert sum(score >= 475 for score in actor_learner) >= 4
