@@ -90,7 +90,7 @@ def tune(
         raise DqnlabError("dqnlab tune needs Optuna: pip install 'dqnlab[tune]'") from None
     from dqnlab.config import parse_overrides
     from dqnlab.envs import is_atari
-    from dqnlab.run.rundir import safe_name
+    from dqnlab.run.rundir import preset_label, safe_name
     from dqnlab.tune.driver import tune as run_tune
     from dqnlab.tune.space import check_space, load_space
     from dqnlab.tune.study import BEST_FILE, TunePlan
@@ -102,7 +102,7 @@ def tune(
     check_space(searched, preset, fixed, env, steps)
     plan = TunePlan(env=env, preset=preset, steps=steps, space=searched, fixed=fixed,
                     evaluations=evaluations, pruner=pruner, seed=seed, seeds=seeds)  # fmt: skip
-    study_dir = study_dir or Path("studies") / f"{safe_name(env)}-{safe_name(Path(preset).stem)}"
+    study_dir = study_dir or Path("studies") / f"{safe_name(env)}-{preset_label(preset)}"
     torch_device = resolve_device(device)
     typer.echo(f"dqnlab: tuning {env} from preset {preset}: {trials} trials of {steps} steps "
                f"into {study_dir}")  # fmt: skip

@@ -161,10 +161,14 @@ def safe_name(text: str) -> str:
     return text.replace(":", "_").replace("/", "_")
 
 
+def preset_label(preset: str) -> str:
+    """A preset as a directory name part: a preset file by its stem, tuned settings as
+    `tuned`."""
+    return "tuned" if preset.startswith("tuned/") else safe_name(Path(preset).stem)
+
+
 def default_run_dir(env: str, preset: str, seed: int) -> Path:
-    """runs/ENV-PRESET-sSEED: a preset file by its stem, tuned settings as `tuned`."""
-    name = "tuned" if preset.startswith("tuned/") else Path(preset).stem
-    return Path("runs") / f"{safe_name(env)}-{name}-s{seed}"
+    return Path("runs") / f"{safe_name(env)}-{preset_label(preset)}-s{seed}"
 
 
 def default_sweep_dir(env: str, keys: Sequence[str]) -> Path:
