@@ -68,7 +68,8 @@ def stale_trials(study: optuna.Study, study_dir: Path) -> list[optuna.trial.Froz
 
 def _trained_now(study_dir: Path, number: int) -> bool:
     """Whether a process trains one of the trial's runs now (its lease is live)."""
-    runs = trials_dir(study_dir).glob(f"trial-{number:04d}*")
+    name = f"trial-{number:04d}"  # the trial's own runs: name, or name-sSEED
+    runs = [trials_dir(study_dir) / name, *trials_dir(study_dir).glob(f"{name}-s*")]
     return any(lease_is_live(run) for run in runs)
 
 
