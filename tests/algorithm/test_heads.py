@@ -12,6 +12,7 @@ from torch import nn
 
 from dqnlab.algorithm.heads import (
     DUELING_TORSO_GRADIENT_SCALE,
+    FACTORISED_MAX_ROWS,
     NoisyLinear,
     QHead,
     has_noise,
@@ -64,6 +65,37 @@ def test_train_mode_adds_sigma_times_noise_and_eval_mode_uses_the_means() -> Non
         torch.testing.assert_close(layer.train()(inputs), inputs @ weight.T + bias)
         torch.testing.assert_close(layer.eval()(inputs), eval_expected)
         assert not torch.allclose(layer.train()(inputs), eval_expected)
+
+
+def test_acting_applies_the_noise_as_two_products_of_the_same_function() -> None:
+    """A few rows without a gradient (acting) take x mu^T + ((x f(eps_in)) sigma^T)
+    f(eps_out): the composed weights' function, to float rounding; a pass with a gradient,
+    or a minibatch, composes the weights, writing their noise first if the draw left it out."""
+    torch.manual_seed(3)
+    layer = NoisyLinear(300, 40, sigma0=0.5)
+    inputs = torch.randn(5, 300)
+    layer.resample_noise(torch.Generator().manual_seed(4), weights=False)
+    eps_in, eps_out = layer.input_epsilon.clone(), layer.bias_epsilon.clone()
+    weight = layer.weight_mu + layer.weight_sigma * torch.outer(eps_out, eps_in)
+    expected = inputs @ weight.T + layer.bias_mu + layer.bias_sigma * eps_out
+    with torch.no_grad():
+        without = layer(inputs)
+    with torch.inference_mode():
+        assert torch.equal(layer(inputs), without)
+    torch.testing.assert_close(without, expected.detach(), rtol=1e-5, atol=1e-5)
+    assert not torch.equal(layer.weight_epsilon, torch.outer(eps_out, eps_in))  # not written
+    with_gradient = layer(inputs)  # composes: writes the outer product first
+    assert torch.equal(layer.weight_epsilon, torch.outer(eps_out, eps_in))
+    torch.testing.assert_close(with_gradient, expected, rtol=1e-5, atol=1e-5)
+    with_gradient.sum().backward()
+    assert layer.weight_sigma.grad is not None and layer.weight_sigma.grad.abs().sum() > 0
+    minibatch = torch.randn(FACTORISED_MAX_ROWS + 1, 300)
+    with torch.no_grad():  # composed: the bits of the pass with a gradient
+        assert torch.equal(layer(minibatch), layer(minibatch.requires_grad_()).detach())
+    # Drawn with the weights, the same generator state gives the same noise.
+    again = NoisyLinear(300, 40, sigma0=0.5)
+    again.resample_noise(torch.Generator().manual_seed(4))
+    assert torch.equal(again.weight_epsilon, layer.weight_epsilon)
 
 
 def test_the_same_generator_state_draws_the_same_noise_in_place() -> None:

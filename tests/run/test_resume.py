@@ -129,30 +129,42 @@ def _frame_layout(config) -> tuple[tuple[int, ...], np.dtype]:
 
 
 def assert_identical(a, b, where: str = "state") -> None:
+    """Every key of two states equal, bit for bit; a failure names every key that differs
+    (the first alone would not say whether the weights, the replay or the streams did)."""
+    found = differences(a, b, where)
+    assert not found, f"{len(found)} differ: " + ", ".join(found)
+
+
+def differences(a, b, where: str = "state") -> list[str]:
     if isinstance(a, dict):
-        assert a.keys() == b.keys(), where
-        for key in a:
-            assert_identical(a[key], b[key], f"{where}.{key}")
-    elif isinstance(a, (list, tuple)):
-        assert len(a) == len(b), where
-        for i, (x, y) in enumerate(zip(a, b, strict=True)):
-            assert_identical(x, y, f"{where}[{i}]")
-    elif isinstance(a, torch.Tensor):
-        assert torch.equal(a, b), where
-    elif isinstance(a, np.ndarray):
-        assert np.array_equal(a, b), where
-    elif where.endswith("env.env"):  # a pickled Gymnasium env: compare what it holds
+        if a.keys() != b.keys():
+            return [f"{where} (keys)"]
+        return [found for key in a for found in differences(a[key], b[key], f"{where}.{key}")]
+    if isinstance(a, (list, tuple)):
+        if len(a) != len(b):
+            return [f"{where} (length)"]
+        return [
+            found
+            for i, (x, y) in enumerate(zip(a, b, strict=True))
+            for found in differences(x, y, f"{where}[{i}]")
+        ]
+    if isinstance(a, torch.Tensor):
+        return [] if torch.equal(a, b) else [where]
+    if isinstance(a, np.ndarray):
+        return [] if np.array_equal(a, b) else [where]
+    if where.endswith("env.env"):  # a pickled Gymnasium env: compare what it holds
         env_a, env_b = pickle.loads(a).unwrapped, pickle.loads(b).unwrapped
         if hasattr(env_a, "state"):  # CartPole
-            assert np.array_equal(env_a.state, env_b.state), where
+            same = np.array_equal(env_a.state, env_b.state)
         else:  # the cue games of tests/envs/space_envs.py: every attribute of the game
-            assert (env_a.t, env_a.cue) == (env_b.t, env_b.cue), where
             plain = (bool, int, float, str, type(None))
-            same = {k: v for k, v in vars(env_a).items() if isinstance(v, plain)}
-            assert same == {k: vars(env_b)[k] for k in same}, where
-        assert env_a.np_random.bit_generator.state == env_b.np_random.bit_generator.state
-    else:
-        assert a == b, where
+            held = {k: v for k, v in vars(env_a).items() if isinstance(v, plain)}
+            same = (env_a.t, env_a.cue) == (env_b.t, env_b.cue) and held == {
+                k: vars(env_b)[k] for k in held
+            }
+        same = same and env_a.np_random.bit_generator.state == env_b.np_random.bit_generator.state
+        return [] if same else [where]
+    return [] if a == b else [where]
 
 
 def csv_rows(path: Path, drop: tuple[str, ...]) -> list[dict[str, str]]:

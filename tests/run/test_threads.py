@@ -1,6 +1,7 @@
 """The `threads` setting: the CPU's arithmetic depends on the thread count, so a run records
 its count in every checkpoint and a resume takes it back (or says it will not be exact);
-and a warning when the cores are already busy."""
+a resume where the arithmetic itself differs (another processor) says so; and a warning
+when the cores are already busy."""
 
 from __future__ import annotations
 
@@ -17,7 +18,12 @@ import torch
 from dqnlab.config import Config, resolve_config
 from dqnlab.errors import ConfigError
 from dqnlab.run import determinism
-from dqnlab.run.determinism import busy_cores_warning, resume_threads
+from dqnlab.run.determinism import (
+    arithmetic_fingerprint,
+    busy_cores_warning,
+    resume_arithmetic,
+    resume_threads,
+)
 from tests.run.test_resume import (
     CARTPOLE,
     assert_identical,
@@ -46,13 +52,26 @@ def _config(threads: int, total_steps: int) -> Config:
     )  # fmt: skip
 
 
-def _dqnlab(threads: int, *args: str) -> subprocess.Popen[str]:
+def _dqnlab(threads: int, *args: str, **environment: str) -> subprocess.Popen[str]:
     """`dqnlab` in a process whose PyTorch default is `threads` (OMP_NUM_THREADS)."""
     return subprocess.Popen(
         [sys.executable, "-m", "dqnlab", *args],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-        env={**os.environ, "OMP_NUM_THREADS": str(threads)},
+        env={**os.environ, "OMP_NUM_THREADS": str(threads), **environment},
     )  # fmt: skip
+
+
+# oneDNN held to SSE4.1 convolves by another code path than on any processor with AVX: a
+# stand-in, on one machine, for a run resumed on another processor.
+OTHER_PROCESSOR = {"ONEDNN_MAX_CPU_ISA": "SSE41"}
+
+
+def _fingerprint_in_process(**environment: str) -> str:
+    code = "from dqnlab.run.determinism import arithmetic_fingerprint as f; print(f())"
+    return subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, check=True,
+        env={**os.environ, "OMP_NUM_THREADS": "1", **environment},
+    ).stdout.strip()  # fmt: skip
 
 
 def test_a_resume_takes_back_the_thread_count_the_run_trained_with(tmp_path: Path) -> None:
@@ -71,11 +90,43 @@ def test_a_resume_takes_back_the_thread_count_the_run_trained_with(tmp_path: Pat
     code, stderr = finish(_dqnlab(2, "resume", str(resumed), "--no-progress", "--device", "cpu"))
     assert code == 0, stderr
     assert "resuming with the 1 PyTorch thread(s) the run trained with" in stderr
+    assert "float arithmetic" not in stderr  # the same machine, the same libraries
     state, replay = final_state(reference)
     state_resumed, replay_resumed = final_state(resumed)
     assert state_resumed["threads"] == 1
     assert_identical(state["learner"], state_resumed["learner"], "learner")
     assert_identical(replay, replay_resumed, "replay")
+
+
+def test_a_resume_where_the_arithmetic_differs_says_it_will_not_be_exact(tmp_path: Path) -> None:
+    """Trained where oneDNN convolves at SSE4.1, resumed where it does not: the checkpoint
+    recorded the first process's fingerprint, and the resume names both."""
+    other, here = _fingerprint_in_process(**OTHER_PROCESSOR), _fingerprint_in_process()
+    if other == here:
+        pytest.skip("oneDNN takes the same code path at SSE4.1 on this processor")
+    run = tmp_path / "run"
+    process = _dqnlab(1, "train", *CARTPOLE, "--run-dir", str(run), **OTHER_PROCESSOR)
+    assert wait_for_checkpoint(run, process, after=300), "the run ended before a kill"
+    process.send_signal(signal.SIGKILL)
+    process.wait()
+    code, stderr = finish(_dqnlab(1, "resume", str(run), "--no-progress", "--device", "cpu"))
+    assert code == 0, stderr
+    assert (
+        f"float arithmetic is not the one the checkpoint was written with (fingerprint {here}, "
+        f"the run's {other}" in stderr
+    ), stderr
+    state, _ = final_state(run)
+    assert state["arithmetic"] == here  # what this process's checkpoints record from now on
+
+
+def test_the_arithmetic_is_compared_on_the_cpu_only_and_where_it_was_recorded() -> None:
+    now = arithmetic_fingerprint()
+    assert now == arithmetic_fingerprint() and len(now) == 16
+    assert resume_arithmetic(CPU, now, now) is None
+    assert resume_arithmetic(CPU, None, now) is None  # a checkpoint from before it was recorded
+    assert resume_arithmetic(torch.device("cuda"), "0" * 16, now) is None
+    said = resume_arithmetic(CPU, "0" * 16, now)
+    assert said is not None and "not bit for bit" in said
 
 
 def test_a_count_set_otherwise_at_resume_wins_and_says_it_will_not_be_exact() -> None:

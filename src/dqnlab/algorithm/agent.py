@@ -224,7 +224,7 @@ class Agent:
 
     def _noisy_q_values(self, stacked_observations: np.ndarray) -> np.ndarray:
         self.online.train()
-        sample_noise(self.online, self.noise_generator)
+        sample_noise(self.online, self.noise_generator, weights=False)  # composed if need be
         with torch.inference_mode():
             inputs = torch.from_numpy(stacked_observations).to(self.device)
             return self.online(inputs).float().cpu().numpy()

@@ -37,6 +37,14 @@ from dqnlab.parts import check_head_options, load_object, load_part
 DUELING_TORSO_GRADIENT_SCALE = 1.0 / math.sqrt(2.0)
 
 
+# Up to this many rows without a gradient, a noisy layer applies its noise as two products
+# rather than composing its weights. Break-even estimate for a 3136 x 512 layer: the second
+# product costs 2 x rows FLOPs per weight, the composition about 12 bytes of memory traffic
+# per weight more; at about 100 GFLOP/s and 15 GB/s they cross near 40 rows (measured on the
+# AMD EPYC, 2026-12-05: a batch of 32 gained nothing, one row gained; docs/benchmark.md).
+FACTORISED_MAX_ROWS = 8
+
+
 class NoisyLinear(nn.Module):
     """A linear layer with factorised Gaussian noise (Fortunato et al. 2018, NoisyNets).
 
@@ -64,6 +72,16 @@ class NoisyLinear(nn.Module):
     `load_state_dict` leaves the target's own noise in place, and network files stay the
     size of mu and sigma. A caller that must resume exactly draws fresh noise right before
     each use from its restored generator (noise drawn before a checkpoint is not saved).
+
+    Acting (no gradient, a few rows: `FACTORISED_MAX_ROWS`) applies the noise as two
+    products, x mu_w^T + ((x * f(eps_in)) sigma_w^T) * f(eps_out), instead of composing the
+    weights: for a few rows each product reads its matrix once and nothing of the weights'
+    size is written, where composing reads three such matrices and writes a fourth. The
+    same function of the same noise, rounded otherwise than the composed weights (no preset
+    with noisy layers is pinned). For a minibatch the second product's FLOPs cost what the
+    composition saves, so the update composes, as before, bit for bit. Noise drawn for
+    acting leaves the outer product f(eps_out) f(eps_in)^T unwritten until a composing
+    pass needs it (`resample_noise(weights=False)`).
     """
 
     weight_epsilon: torch.Tensor
@@ -90,17 +108,26 @@ class NoisyLinear(nn.Module):
         nn.init.uniform_(self.bias_mu, -bound, bound)
         nn.init.constant_(self.weight_sigma, sigma0 * bound)
         nn.init.constant_(self.bias_sigma, sigma0 * bound)
+        self._weight_noise_drawn = True  # weight_epsilon is the outer product of the vectors
 
     def forward(self, inputs: torch.Tensor) -> torch.Tensor:
         if not self.training:
             return F.linear(inputs, self.weight_mu, self.bias_mu)
-        weight = torch.addcmul(self.weight_mu, self.weight_sigma, self.weight_epsilon)
         bias = torch.addcmul(self.bias_mu, self.bias_sigma, self.bias_epsilon)
+        rows = inputs.numel() // self.in_features
+        if rows <= FACTORISED_MAX_ROWS and not torch.is_grad_enabled():  # see the class
+            noise = F.linear(inputs * self.input_epsilon, self.weight_sigma)
+            return torch.addcmul(F.linear(inputs, self.weight_mu, bias), noise, self.bias_epsilon)
+        if not self._weight_noise_drawn:
+            self._draw_weight_noise()
+        weight = torch.addcmul(self.weight_mu, self.weight_sigma, self.weight_epsilon)
         return F.linear(inputs, weight, bias)
 
     @torch.no_grad()
-    def resample_noise(self, generator: torch.Generator) -> None:
-        """Draw new noise from `generator` (eps_in first, then eps_out), into the buffers."""
+    def resample_noise(self, generator: torch.Generator, *, weights: bool = True) -> None:
+        """Draw new noise from `generator` (eps_in first, then eps_out), into the buffers;
+        with `weights` False the weight noise (their outer product) is left for the first
+        pass that composes the weights to write (acting's passes never read it)."""
         if generator.device.type != self.weight_epsilon.device.type:
             raise ValueError(
                 f"the noise generator is on {generator.device}, the noisy layer on "
@@ -110,20 +137,28 @@ class NoisyLinear(nn.Module):
             epsilon.normal_(generator=generator)
             sign = epsilon.sign()
             epsilon.abs_().sqrt_().mul_(sign)  # f(x) = sign(x) sqrt(|x|)
+        self._weight_noise_drawn = False
+        if weights:
+            self._draw_weight_noise()
+
+    @torch.no_grad()
+    def _draw_weight_noise(self) -> None:
         torch.outer(self.bias_epsilon, self.input_epsilon, out=self.weight_epsilon)
+        self._weight_noise_drawn = True
 
     def extra_repr(self) -> str:
         sizes = f"in_features={self.in_features}, out_features={self.out_features}"
         return f"{sizes}, sigma0={self.sigma0}"
 
 
-def sample_noise(network: nn.Module, generator: torch.Generator) -> None:
+def sample_noise(network: nn.Module, generator: torch.Generator, *, weights: bool = True) -> None:
     """Resample the noise of every `NoisyLinear` in `network`, in module order, from
     `generator` (on the network's device). Allocates nothing larger than the noise vectors:
-    the weight noise is written in place into preallocated buffers."""
+    the weight noise is written in place into preallocated buffers (with `weights` False,
+    only when a pass that composes the weights needs it: `NoisyLinear.resample_noise`)."""
     for module in network.modules():
         if isinstance(module, NoisyLinear):
-            module.resample_noise(generator)
+            module.resample_noise(generator, weights=weights)
 
 
 def has_noise(network: nn.Module) -> bool:

@@ -5,7 +5,12 @@ On the CPU, PyTorch's operations give the same bits from the same inputs at a gi
 number of threads, but not across counts: on a 2-core AMD EPYC (2026-12-04), four updates
 with two threads gave other bits than with one for nature, double, classic, drq_epsilon
 and iqn among others (c51, dueling, der and rainbow the same). So a run records its count
-in every checkpoint and a resumed run takes it back.
+in every checkpoint and a resumed run takes it back. Nor across processors: ATen, MKL and
+oneDNN choose their code paths (vector width, blocking) by the processor they find, and a
+run resumed on another machine (a Xeon after an AMD EPYC, say) computes other bits from
+the same state. So a checkpoint also records a fingerprint of this process's arithmetic
+(`arithmetic_fingerprint`), and a resume whose fingerprint differs says that it will not
+continue bit for bit.
 
 On a GPU, some operations do not repeat by default: cuDNN's convolution gradients and
 cuBLAS's split reductions add in an order that varies from call to call. Measured on an
@@ -16,6 +21,7 @@ does a resumed run.
 
 from __future__ import annotations
 
+import hashlib
 import os
 
 import torch
@@ -77,6 +83,40 @@ def resume_threads(config: Config, device: torch.device, trained_with: int | Non
         f"dqnlab: warning: threads = {now} where the run trained with {trained_with}: the "
         "resumed run continues from its checkpoint, but not bit for bit (the CPU's "
         "arithmetic depends on the thread count)"
+    )
+
+
+def arithmetic_fingerprint() -> str:
+    """A digest of what the update's arithmetic is made of, computed by this process at its
+    thread count on fixed inputs: a convolution forward and its weight gradient (oneDNN), a
+    matrix product (MKL), a reduction and an elementwise root (ATen). Equal where the
+    libraries take the same code paths; a few milliseconds."""
+    generator = torch.Generator().manual_seed(0)
+    images = torch.rand(2, 4, 84, 84, generator=generator)
+    kernel = (torch.rand(32, 4, 8, 8, generator=generator) - 0.5).requires_grad_()
+    left = torch.rand(32, 3136, generator=generator)
+    right = torch.rand(3136, 256, generator=generator)
+    with torch.enable_grad():
+        convolved = torch.nn.functional.conv2d(images, kernel, stride=4)
+        convolved.square().sum().backward()
+    digest = hashlib.sha256()
+    for tensor in (convolved, kernel.grad, left @ right, left.sum(dim=1), torch.sqrt(left[0])):
+        assert tensor is not None
+        digest.update(tensor.detach().contiguous().numpy().tobytes())
+    return digest.hexdigest()[:16]
+
+
+def resume_arithmetic(device: torch.device, recorded: str | None, now: str | None) -> str | None:
+    """What a resume must say when this process's arithmetic (`now`) is not the one the
+    checkpoint was written with (`recorded`; None in checkpoints from before it was
+    recorded, and on a GPU, where `deterministic` decides)."""
+    if device.type != "cpu" or recorded is None or now is None or recorded == now:
+        return None
+    return (
+        "dqnlab: warning: this machine's float arithmetic is not the one the checkpoint was "
+        f"written with (fingerprint {now}, the run's {recorded}: another processor, or other "
+        "builds of PyTorch's libraries): the resumed run continues from its checkpoint, but "
+        "not bit for bit as it would have there"
     )
 
 

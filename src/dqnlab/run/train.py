@@ -43,7 +43,9 @@ from dqnlab.run.checkpoints import CheckpointStore
 from dqnlab.run.concurrent import training_state
 from dqnlab.run.determinism import (
     apply_threads,
+    arithmetic_fingerprint,
     busy_cores_warning,
+    resume_arithmetic,
     resume_threads,
     resume_warning,
 )
@@ -174,6 +176,7 @@ class TrainingLoop:
         self.fingerprint = config_fingerprint(config)
         self.progress = RunProgress()
         pending: list[dict[str, Any]] = []  # evaluations a checkpoint left in flight
+        self.arithmetic = arithmetic_fingerprint() if device.type == "cpu" else None
         if resume:
             pending = self._restore(device)
         else:
@@ -373,6 +376,7 @@ class TrainingLoop:
             "learner": state.state_dict(),
             "run": dataclasses.asdict(self.progress),
             "threads": self.threads,  # the CPU's arithmetic depends on it: a resume keeps it
+            "arithmetic": self.arithmetic,  # and on the processor: a resume elsewhere says so
         }
         if self.background is not None:  # played again by a resumed run
             saved["pending_evaluations"] = self.background.state_dict()
@@ -403,6 +407,9 @@ class TrainingLoop:
         if loaded is not None:
             _say(resume_threads(self.config, device, loaded.state.get("threads")))
             self.threads = torch.get_num_threads()
+            if self.arithmetic is not None:  # at the count taken back
+                self.arithmetic = arithmetic_fingerprint()
+            _say(resume_arithmetic(device, loaded.state.get("arithmetic"), self.arithmetic))
             self.state.load_state_dict(loaded.state["learner"])
             self.progress = RunProgress(**loaded.state["run"])
             return list(loaded.state.get("pending_evaluations", []))
