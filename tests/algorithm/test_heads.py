@@ -16,6 +16,7 @@ from dqnlab.algorithm.heads import (
     NoisyLinear,
     QHead,
     has_noise,
+    noisy_weight,
     sample_noise,
     scale_gradient,
 )
@@ -96,6 +97,20 @@ def test_acting_applies_the_noise_as_two_products_of_the_same_function() -> None
     again = NoisyLinear(300, 40, sigma0=0.5)
     again.resample_noise(torch.Generator().manual_seed(4))
     assert torch.equal(again.weight_epsilon, layer.weight_epsilon)
+
+
+def test_the_noisy_weight_has_addcmuls_values_and_gradients_bit_for_bit() -> None:
+    generator = torch.Generator().manual_seed(6)
+    mu, sigma, epsilon = (torch.randn(64, 300, generator=generator) for _ in range(3))
+    upstream = torch.randn(64, 300, generator=generator)
+    results = []
+    for compose in (noisy_weight, torch.addcmul):
+        leaves = [mu.clone().requires_grad_(), sigma.clone().requires_grad_()]
+        weight = compose(*leaves, epsilon)
+        weight.backward(upstream)
+        results.append([weight.detach(), *(leaf.grad for leaf in leaves)])
+    for ours, autograds in zip(*results, strict=True):
+        assert torch.equal(ours, autograds)
 
 
 def test_the_same_generator_state_draws_the_same_noise_in_place() -> None:

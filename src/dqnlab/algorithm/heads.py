@@ -120,7 +120,7 @@ class NoisyLinear(nn.Module):
             return torch.addcmul(F.linear(inputs, self.weight_mu, bias), noise, self.bias_epsilon)
         if not self._weight_noise_drawn:
             self._draw_weight_noise()
-        weight = torch.addcmul(self.weight_mu, self.weight_sigma, self.weight_epsilon)
+        weight = noisy_weight(self.weight_mu, self.weight_sigma, self.weight_epsilon)
         return F.linear(inputs, weight, bias)
 
     @torch.no_grad()
@@ -149,6 +149,31 @@ class NoisyLinear(nn.Module):
     def extra_repr(self) -> str:
         sizes = f"in_features={self.in_features}, out_features={self.out_features}"
         return f"{sizes}, sigma0={self.sigma0}"
+
+
+class _NoisyWeight(torch.autograd.Function):
+    """mu + sigma * epsilon, whose backward gives sigma the gradient times epsilon in one
+    product: autograd's `addcmul` computes epsilon * 1 first, a pass over the whole matrix
+    and an allocation of its size (10% of Rainbow's update on the CPU). The same bits:
+    multiplying by one is exact."""
+
+    @staticmethod
+    def forward(
+        ctx: Any, mu: torch.Tensor, sigma: torch.Tensor, epsilon: torch.Tensor
+    ) -> torch.Tensor:
+        ctx.save_for_backward(epsilon)
+        return torch.addcmul(mu, sigma, epsilon)
+
+    @staticmethod
+    def backward(ctx: Any, gradient: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, None]:
+        (epsilon,) = ctx.saved_tensors
+        return gradient, gradient * epsilon, None
+
+
+def noisy_weight(mu: torch.Tensor, sigma: torch.Tensor, epsilon: torch.Tensor) -> torch.Tensor:
+    """The noisy weight mu + sigma * epsilon, differentiable in mu and sigma."""
+    weight: torch.Tensor = _NoisyWeight.apply(mu, sigma, epsilon)
+    return weight
 
 
 def sample_noise(network: nn.Module, generator: torch.Generator, *, weights: bool = True) -> None:
