@@ -3,14 +3,17 @@ same columns and overall bar in the live table `dqnlab sweep` draws with rich.""
 
 from __future__ import annotations
 
+import dataclasses
 import io
 import json
+import socket
 import subprocess
 import sys
 import time
 from pathlib import Path
 from typing import Any
 
+import psutil
 from rich.console import Console
 
 from dqnlab.analysis.status import (
@@ -24,7 +27,8 @@ from dqnlab.analysis.status import (
 )
 from dqnlab.config import resolve_config
 from dqnlab.run import rundir
-from dqnlab.run.lease import RunLease
+from dqnlab.run.lease import LeaseRecord, RunLease, boot_id
+from dqnlab.run.rundir import lease_path
 from dqnlab.sweeps.grid import parse_variation, plan_grid, write_sweep_file
 
 EPISODES = "step,frames,episode,score,steps,epsilon,wall_seconds\n"
@@ -77,6 +81,29 @@ def test_status_of_a_sweep_in_each_state(tmp_path: Path) -> None:
                      "settings": {"discount": 0.9}, "state": "done", "step": 1000,
                      "total_steps": 1000, "last_eval_mean": 12.5, "attempts": 1}  # fmt: skip
     assert [r["attempts"] for r in record["runs"]] == [1, 1, 2, 1, 1, 0]
+
+
+def test_a_run_whose_process_lives_but_renews_no_lease_is_paused_not_retrying(
+    tmp_path: Path,
+) -> None:
+    """A training stopped with SIGSTOP (to time something beside it) keeps its process but
+    lets its lease expire: `paused`, not `retrying` (no other attempt starts while it lives);
+    once the process is gone, Ray's retry is what comes."""
+    sweep = make_sweep(tmp_path / "sweep")
+    run = sweep.runs[0].run_dir
+    started(run, 1, None, 300)
+    sleeper = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+    try:
+        expired = LeaseRecord(
+            "token", socket.gethostname(), sleeper.pid, time.time() - 3600, False, boot_id(),
+            psutil.Process(sleeper.pid).create_time(),
+        )  # fmt: skip
+        lease_path(run).write_text(json.dumps(dataclasses.asdict(expired)))
+        assert collect_status(sweep.directory)[0].state == "paused"
+    finally:
+        sleeper.kill()
+        sleeper.wait()
+    assert collect_status(sweep.directory)[0].state == "retrying"
 
 
 def test_the_status_command_on_a_sweep_and_on_one_run(tmp_path: Path) -> None:

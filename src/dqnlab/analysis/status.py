@@ -5,6 +5,8 @@ shows the same: both draw the columns of `COLUMNS` and the overall bar of `sweep
 A run's state:
     pending    nothing trained yet (no attempt started)
     running    a process holds the run's lease (`lease.RunLease`)
+    paused     its process still exists on this machine but no longer renews the lease
+               (stopped with SIGSTOP, or hung): no other attempt starts while it exists
     retrying   an attempt ended without finishing (killed, node lost) and the run is
                not held: Ray starts it again
     stopped    stopped by a request (Ctrl-C) after a checkpoint: the same command carries on
@@ -44,16 +46,19 @@ from dqnlab.analysis.report.reference import (
 from dqnlab.envs import is_atari
 from dqnlab.errors import DqnlabError
 from dqnlab.run import rundir
-from dqnlab.run.lease import LEASE_SECONDS, TAKEOVER_GRACE_SECONDS, lease_is_live
+from dqnlab.run.lease import LEASE_SECONDS, TAKEOVER_GRACE_SECONDS, lease_is_live, read_lease
 
-STATES = ("pending", "running", "retrying", "stopped", "done", "failed")
+STATES = ("pending", "running", "paused", "retrying", "stopped", "done", "failed")
 TAIL_BYTES = 8192  # enough of a CSV's end for its last rows
 # An attempt that started this recently and holds no lease yet is starting up, not lost.
 STARTING_SECONDS = LEASE_SECONDS + TAKEOVER_GRACE_SECONDS
 RATE_ROWS = 10  # frames/s over the last rows of episodes.csv
 NODE_WIDTH = 14  # a node's name in the table, cut to this
 TEXT_BAR_WIDTH, BAR_WIDTH = 20, 30  # the overall bar's characters: as text, live
-STATE_STYLES = {"retrying": "yellow", "stopped": "yellow", "done": "dim", "failed": "bold red"}
+STATE_STYLES = {
+    "paused": "yellow", "retrying": "yellow", "stopped": "yellow", "done": "dim",
+    "failed": "bold red",
+}  # fmt: skip
 
 
 @dataclass
@@ -179,6 +184,12 @@ def run_status(run_dir: Path, planned: dict[str, Any] | None = None) -> RunStatu
         status.state = "done"
     elif starts and last_end is None and time.time() - (status.started_at or 0) < STARTING_SECONDS:
         status.state = "running"  # started, not holding its lease yet
+    elif (
+        (lease := read_lease(run_dir))
+        and not lease.released
+        and lease.owner_alive_on_this_machine()
+    ):
+        status.state = "paused"
     elif starts or status.step > 0:
         status.state = "retrying" if starts else "stopped"
     if status.state == "done":

@@ -82,12 +82,21 @@ class LeaseRecord:
 
     def owner_gone_from_this_machine(self) -> bool:
         """The owner ran on this machine and its process no longer exists."""
+        return self._owner_on_this_machine() is False
+
+    def owner_alive_on_this_machine(self) -> bool:
+        """The owner runs on this machine and its process still exists (whether or not it
+        renews the lease: a process stopped with SIGSTOP does not)."""
+        return self._owner_on_this_machine() is True
+
+    def _owner_on_this_machine(self) -> bool | None:
+        """Whether the owner's process exists; None where it is not of this machine's boot."""
         if not self.boot_id or (self.host, self.boot_id) != (socket.gethostname(), boot_id()):
-            return False
+            return None
         try:
-            return abs(psutil.Process(self.pid).create_time() - self.started) > 0.01
+            return abs(psutil.Process(self.pid).create_time() - self.started) <= 0.01
         except psutil.NoSuchProcess:
-            return True
+            return False
 
 
 def boot_id() -> str:

@@ -182,7 +182,7 @@ class _StateLines:
             if self.states.get(status.name, "pending") == status.state:
                 continue
             self.states[status.name] = status.state
-            if status.state in ("running", "retrying"):
+            if status.state in ("running", "paused", "retrying"):
                 self.echo(f"dqnlab: {status.name}: {status.state} on {status.node or '?'} "
                           f"(attempt {status.attempts}, step {status.step:,})")  # fmt: skip
         now = time.monotonic()
