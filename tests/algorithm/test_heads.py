@@ -8,6 +8,7 @@ import math
 
 import pytest
 import torch
+import torch.nn.functional as F
 from torch import nn
 
 from dqnlab.algorithm.heads import (
@@ -111,6 +112,37 @@ def test_the_noisy_weight_has_addcmuls_values_and_gradients_bit_for_bit() -> Non
         results.append([weight.detach(), *(leaf.grad for leaf in leaves)])
     for ours, autograds in zip(*results, strict=True):
         assert torch.equal(ours, autograds)
+
+
+def test_a_pass_without_gradient_reuses_the_composed_weights_until_they_change() -> None:
+    """Double DQN's next-action pass after Q(s, a) reuses the matrix the first composed;
+    an optimizer step, fresh noise or new weights compose it again."""
+    torch.manual_seed(7)
+    layer = NoisyLinear(300, 40, sigma0=0.5)
+    minibatch = torch.randn(FACTORISED_MAX_ROWS + 1, 300)
+    layer.resample_noise(torch.Generator().manual_seed(8))
+
+    def composed() -> torch.Tensor:  # what the layer computes, from scratch
+        weight = torch.addcmul(layer.weight_mu, layer.weight_sigma, layer.weight_epsilon)
+        bias = torch.addcmul(layer.bias_mu, layer.bias_sigma, layer.bias_epsilon)
+        return F.linear(minibatch, weight, bias).detach()
+
+    layer(minibatch).sum().backward()
+    kept = layer._last_composed
+    assert kept is not None
+    with torch.no_grad():
+        assert torch.equal(layer(minibatch), composed())
+        assert layer._composed_weight() is kept[1]  # reused, not composed again
+    torch.optim.SGD(layer.parameters(), lr=0.1).step()  # in place: a new version
+    with torch.no_grad():
+        assert layer._composed_weight() is not kept[1]
+        assert torch.equal(layer(minibatch), composed())
+    layer.resample_noise(torch.Generator().manual_seed(9))
+    with torch.no_grad():
+        assert torch.equal(layer(minibatch), composed())
+    with torch.no_grad():
+        layer.weight_mu.copy_(torch.randn(40, 300))  # as load_state_dict writes it
+        assert torch.equal(layer(minibatch), composed())
 
 
 def test_the_same_generator_state_draws_the_same_noise_in_place() -> None:

@@ -109,6 +109,9 @@ class NoisyLinear(nn.Module):
         nn.init.constant_(self.weight_sigma, sigma0 * bound)
         nn.init.constant_(self.bias_sigma, sigma0 * bound)
         self._weight_noise_drawn = True  # weight_epsilon is the outer product of the vectors
+        # The matrix a pass with a gradient composed, and what it was composed from: each
+        # part's storage and version (any change in place, the optimizer's too, bumps it).
+        self._last_composed: tuple[tuple[tuple[int, int], ...], torch.Tensor] | None = None
 
     def forward(self, inputs: torch.Tensor) -> torch.Tensor:
         if not self.training:
@@ -118,10 +121,25 @@ class NoisyLinear(nn.Module):
         if rows <= FACTORISED_MAX_ROWS and not torch.is_grad_enabled():  # see the class
             noise = F.linear(inputs * self.input_epsilon, self.weight_sigma)
             return torch.addcmul(F.linear(inputs, self.weight_mu, bias), noise, self.bias_epsilon)
+        return F.linear(inputs, self._composed_weight(), bias)
+
+    def _composed_weight(self) -> torch.Tensor:
+        """mu_w + sigma_w * eps_w. A pass without a gradient after one with it, on the same
+        weights and noise, reuses that pass's matrix (Double DQN's choice of the next action
+        after Q(s, a), in each update): the same values, one composition fewer."""
         if not self._weight_noise_drawn:
             self._draw_weight_noise()
-        weight = noisy_weight(self.weight_mu, self.weight_sigma, self.weight_epsilon)
-        return F.linear(inputs, weight, bias)
+        parts = (self.weight_mu, self.weight_sigma, self.weight_epsilon)
+        key = tuple((part.data_ptr(), part._version) for part in parts)
+        if torch.compiler.is_compiling():  # no Python-side state in a compiled graph
+            return noisy_weight(*parts)
+        if torch.is_grad_enabled():
+            weight = noisy_weight(*parts)
+            self._last_composed = (key, weight.detach())
+            return weight
+        if self._last_composed is not None and self._last_composed[0] == key:
+            return self._last_composed[1]
+        return torch.addcmul(*parts)
 
     @torch.no_grad()
     def resample_noise(self, generator: torch.Generator, *, weights: bool = True) -> None:
