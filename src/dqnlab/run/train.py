@@ -147,6 +147,7 @@ class TrainingLoop:
 
     on_evaluation: EvaluationHook | None = None  # see `train`
     hook_stop = False  # on_evaluation asked the run to stop
+    arithmetic: str | None = None  # `_arithmetic`
 
     def __init__(
         self,
@@ -176,7 +177,6 @@ class TrainingLoop:
         self.fingerprint = config_fingerprint(config)
         self.progress = RunProgress()
         pending: list[dict[str, Any]] = []  # evaluations a checkpoint left in flight
-        self.arithmetic = arithmetic_fingerprint() if device.type == "cpu" else None
         if resume:
             pending = self._restore(device)
         else:
@@ -359,6 +359,12 @@ class TrainingLoop:
             or time.monotonic() - self.saved_time >= config.checkpoint_period_minutes * 60
         )
 
+    def _arithmetic(self) -> str | None:
+        """This process's arithmetic fingerprint, computed once (on the CPU only)."""
+        if self.arithmetic is None and self.state.agent.device.type == "cpu":
+            self.arithmetic = arithmetic_fingerprint()
+        return self.arithmetic
+
     def _checkpoint(self, step: int) -> None:
         """A complete training checkpoint (only the replay chunks written since the last
         one), then last.pt. A failure stops the run, or with `on_checkpoint_error =
@@ -376,7 +382,7 @@ class TrainingLoop:
             "learner": state.state_dict(),
             "run": dataclasses.asdict(self.progress),
             "threads": self.threads,  # the CPU's arithmetic depends on it: a resume keeps it
-            "arithmetic": self.arithmetic,  # and on the processor: a resume elsewhere says so
+            "arithmetic": self._arithmetic(),  # and on the processor: a resume elsewhere says so
         }
         if self.background is not None:  # played again by a resumed run
             saved["pending_evaluations"] = self.background.state_dict()
@@ -407,9 +413,8 @@ class TrainingLoop:
         if loaded is not None:
             _say(resume_threads(self.config, device, loaded.state.get("threads")))
             self.threads = torch.get_num_threads()
-            if self.arithmetic is not None:  # at the count taken back
-                self.arithmetic = arithmetic_fingerprint()
-            _say(resume_arithmetic(device, loaded.state.get("arithmetic"), self.arithmetic))
+            self.arithmetic = None  # this process's, at the count taken back
+            _say(resume_arithmetic(device, loaded.state.get("arithmetic"), self._arithmetic()))
             self.state.load_state_dict(loaded.state["learner"])
             self.progress = RunProgress(**loaded.state["run"])
             return list(loaded.state.get("pending_evaluations", []))
