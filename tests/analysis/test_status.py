@@ -87,7 +87,7 @@ def test_a_run_whose_process_lives_but_renews_no_lease_is_paused_not_retrying(
     tmp_path: Path,
 ) -> None:
     """A training stopped with SIGSTOP (to time something beside it) keeps its process but
-    lets its lease expire: `paused`, not `retrying` (no other attempt starts while it lives);
+    lets its lease expire: `paused`, not `retrying` (its process may still carry on);
     once the process is gone, Ray's retry is what comes."""
     sweep = make_sweep(tmp_path / "sweep")
     run = sweep.runs[0].run_dir

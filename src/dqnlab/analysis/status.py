@@ -6,7 +6,9 @@ A run's state:
     pending    nothing trained yet (no attempt started)
     running    a process holds the run's lease (`lease.RunLease`)
     paused     its process still exists on this machine but no longer renews the lease
-               (stopped with SIGSTOP, or hung): no other attempt starts while it exists
+               (stopped with SIGSTOP, or hung); once the lease has expired, an attempt
+               that starts anyway takes it over, and the paused process stops at its
+               next checkpoint (LeaseLost)
     retrying   an attempt ended without finishing (killed, node lost) and the run is
                not held: Ray starts it again
     stopped    stopped by a request (Ctrl-C) after a checkpoint: the same command carries on
