@@ -38,7 +38,7 @@ CARTPOLE = [
     "--set", "replay_start_steps=300", "--set", "eval_period_steps=1000",
     "--set", "eval_steps=300", "--set", "checkpoint_period_steps=100",
     "--set", "replay_capacity=2000",
-    "--no-progress", "--device", "cpu",
+    "--no-progress", "--device", "cpu", "--preset", "classic",  # not tuned/CartPole-v1
 ]  # fmt: skip
 # Every part of the family at once, as Rainbow composes them: priorities, the noise
 # generator and n-step windows must come back exactly too.

@@ -62,7 +62,7 @@ def test_an_ablation_plan_and_its_jobs(tmp_path: Path) -> None:
         first_seed=0, steps=500, sweep_dir=tmp_path / "ablation",
     )  # fmt: skip
     assert [run.name for run in sweep.runs] == ["discount=0.9-s0", "discount=0.99-s0"]
-    assert sweep.preset == "classic"
+    assert sweep.preset == "tuned/CartPole-v1"  # train's choice for the id
     assert ablation_jobs(sweep, 1) == 1
     assert 1 <= ablation_jobs(sweep, None) <= 2
     with pytest.raises(DqnlabError, match="--jobs 0 must be positive"):

@@ -188,6 +188,10 @@ def test_two_jobs_train_a_trial_each_on_one_thread(tmp_path: Path) -> None:
             "threads = 1 "
             in (trial_run_dir(tmp_path / "study", number) / "config.toml").read_text()
         )
+    # The thread count is the machine's: best.toml leaves it at the default, and says why.
+    best = resolve_config(str(tmp_path / "study" / "best.toml"), env="CartPole-v1")
+    assert best.threads == 0
+    assert "the study's trials ran with 1" in (tmp_path / "study" / "best.toml").read_text()
 
 
 def test_a_trial_of_several_seeds_is_their_mean_and_is_pruned_on_its_first_seed(

@@ -28,6 +28,9 @@ from dqnlab.tune.study import (
 # Left out of best.toml: the environment is the command's (`--env`), as in every preset, and
 # the preset a run started from is recorded by the run that loads this one.
 NOT_IN_PRESET = ("env", "preset")
+# Written at their defaults whatever the trials ran with: how the machine runs a training, not
+# what it learns (a study runs one PyTorch thread per trial; a user's GPU machine wants its own).
+MACHINE_SETTINGS = ("threads",)
 
 
 def write_outputs(study: optuna.Study, study_dir: Path, command: str) -> list[Path]:
@@ -98,8 +101,11 @@ def preset_text(config: Config, best: optuna.trial.FrozenTrial, command: str) ->
         if field.name in NOT_IN_PRESET:
             continue
         searched = "  (searched)" if field.name in best.params else ""
-        value = toml_value(getattr(config, field.name))
-        lines.append(f"{field.name} = {value}  # {field.metadata['doc']}{searched}")
+        value = getattr(config, field.name)
+        if field.name in MACHINE_SETTINGS and value != field.default:
+            searched = f"  (the study's trials ran with {toml_value(value)}: a machine setting)"
+            value = field.default
+        lines.append(f"{field.name} = {toml_value(value)}  # {field.metadata['doc']}{searched}")
     return "\n".join(lines) + "\n"
 
 
