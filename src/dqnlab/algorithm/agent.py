@@ -217,13 +217,13 @@ class Agent:
     def q_values(self, stacked_observations: np.ndarray) -> np.ndarray:
         """Q-values of the online network in eval mode (matters for dropout/batch norm, and
         gives noisy layers their mean weights)."""
-        self.online.eval()
+        set_mode(self.online, training=False)
         with torch.inference_mode():
             inputs = torch.from_numpy(stacked_observations).to(self.device)
             return self.online(inputs).float().cpu().numpy()
 
     def _noisy_q_values(self, stacked_observations: np.ndarray) -> np.ndarray:
-        self.online.train()
+        set_mode(self.online, training=True)
         sample_noise(self.online, self.noise_generator, weights=False)  # composed if need be
         with torch.inference_mode():
             inputs = torch.from_numpy(stacked_observations).to(self.device)
@@ -237,8 +237,8 @@ class Agent:
         # held-out statistics use eval mode): a part whose forward depends on the mode
         # (noisy layers, a user's dropout or random draws) then computes the same after a
         # resume as in a run left alone.
-        self.online.train()
-        self.target.train()
+        set_mode(self.online, training=True)
+        set_mode(self.target, training=True)
         transitions = self._on_device(batch)
         if self.noisy:  # fresh noise for each network (Fortunato et al. 2018, Algorithm 1)
             # Drawn in place into the layers' buffers, outside a graph: each update's own.
@@ -287,12 +287,25 @@ class Agent:
         # allocator return memory and fault it back in, which cost more than the two
         # passes over the gradients that set_to_none=True saves (and a graph needs them
         # to stay where they are).
-        self.optimizer.zero_grad(set_to_none=False)
+        self._zero_gradients()
         loss, priorities = self._loss_and_backward(batch)
         if self.config.max_gradient_norm > 0:
             nn.utils.clip_grad_norm_(self.online.parameters(), self.config.max_gradient_norm)
         self._optimizer_step()
         return loss, priorities
+
+    def _zero_gradients(self) -> None:
+        """The gradients of the optimizer's parameters zeroed in place, in one foreach call
+        (what `optimizer.zero_grad(set_to_none=False)` does, without its per-call Python
+        work: 25 us of a 1 ms CartPole update)."""
+        gradients = [
+            param.grad
+            for group in self.optimizer.param_groups
+            for param in group["params"]
+            if param.grad is not None
+        ]
+        if gradients:
+            torch._foreach_zero_(gradients)
 
     def _loss_and_backward(self, batch: Transitions) -> tuple[torch.Tensor, torch.Tensor | None]:
         output = self.loss(self.online, self.target, batch)
@@ -331,6 +344,14 @@ class Agent:
             self.augmentation_generator.set_state(state["augmentation_rng"].cpu())
         restore_generators(self.part_generators, state.get("part_rngs", {}))
         self.updates = int(state["updates"])
+
+
+def set_mode(network: nn.Module, training: bool) -> None:
+    """`network.train(training)`, skipped when every module is in that mode already:
+    `Module.train` walks and sets every module (30 us for the CartPole MLP, three times a
+    step), the check reads them (8 us). A module whose own mode differs is still set."""
+    if any(module.training != training for module in network.modules()):
+        network.train(training)
 
 
 def _on_device(frames: np.ndarray | torch.Tensor, device: torch.device) -> torch.Tensor:
