@@ -11,7 +11,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from dqnlab.algorithm.agent import Agent, epsilon_at
+from dqnlab.algorithm.agent import Agent, epsilon_at, set_mode
 from dqnlab.algorithm.losses import TDLoss, Transitions
 from dqnlab.algorithm.networks import NatureCNN
 from dqnlab.algorithm.replay import Batch
@@ -184,3 +184,35 @@ def test_update_matches_a_plain_reference_implementation(
     # The target network keeps the initial weights until sync_target.
     for kept, start in zip(agent.target.parameters(), initial, strict=True):
         assert torch.equal(kept, start)
+
+
+class _ModeCounted(nn.Module):
+    """A part with a `train` of its own: it counts the calls."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.calls = 0
+
+    def train(self, mode: bool = True) -> _ModeCounted:
+        self.calls += 1
+        return super().train(mode)
+
+
+def test_set_mode_sets_any_module_in_the_other_mode_and_skips_the_walk_otherwise() -> None:
+    network = nn.Sequential(nn.Linear(2, 2), nn.Sequential(nn.ReLU(), nn.Linear(2, 1)))
+    walks = []
+    network.train = lambda mode=True: walks.append(mode) or nn.Module.train(network, mode)
+    set_mode(network, training=True)  # every module in train mode already: no walk
+    assert walks == []
+    network[1][1].eval()  # one module deep inside in the other mode: the whole walk
+    set_mode(network, training=True)
+    assert walks == [True] and all(module.training for module in network.modules())
+    set_mode(network, training=False)
+    assert walks == [True, False] and not any(module.training for module in network.modules())
+    set_mode(network, training=False)
+    assert walks == [True, False]
+    # A module with a train of its own is called every time, as Module.train would.
+    counted = nn.Sequential(nn.Linear(2, 2), _ModeCounted())
+    set_mode(counted, training=True)
+    set_mode(counted, training=True)
+    assert counted[1].calls == 2

@@ -347,10 +347,14 @@ class Agent:
 
 
 def set_mode(network: nn.Module, training: bool) -> None:
-    """`network.train(training)`, skipped when every module is in that mode already:
+    """`network.train(training)`, skipped when every module is in that mode already and
+    none has a `train` of its own (a user's part may act in it, and is called as before):
     `Module.train` walks and sets every module (30 us for the CartPole MLP, three times a
-    step), the check reads them (8 us). A module whose own mode differs is still set."""
-    if any(module.training != training for module in network.modules()):
+    step), the check reads them (8 us)."""
+    if any(
+        module.training != training or type(module).train is not nn.Module.train
+        for module in network.modules()
+    ):
         network.train(training)
 
 
