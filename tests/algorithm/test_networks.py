@@ -336,3 +336,37 @@ def test_der_cnn_refuses_what_it_cannot_read() -> None:
         build_network("der_cnn", (4, 20, 20), 3, is_image=True)
     with pytest.raises(ConfigError, match="der_cnn' needs observations that are one image"):
         build_network("der_cnn", (4, 8), 3, is_image=False)
+
+
+def test_the_same_unchanged_frames_are_converted_once_and_changed_frames_again(
+    monkeypatch,
+) -> None:
+    """Double DQN's two passes on s' share one conversion of the frames; an in-place change
+    to them, another tensor, or other autograd modes convert afresh; the values are those
+    of a conversion every time."""
+    from dqnlab.algorithm import image_networks
+
+    conversions = []
+    converted = image_networks._converted
+    monkeypatch.setattr(
+        image_networks, "_converted", lambda frames: conversions.append(1) or converted(frames)
+    )
+    monkeypatch.setattr(image_networks, "_last_planes", None)
+    frames = torch.randint(0, 256, (2, 4, 84, 84), dtype=torch.uint8)
+    first = image_networks._scaled_planes(frames)
+    assert image_networks._scaled_planes(frames) is first and len(conversions) == 1
+    assert torch.equal(first, converted(frames))
+    frames[0, 0, 0, 0] ^= 1  # in place: a new version
+    changed = image_networks._scaled_planes(frames)
+    assert len(conversions) == 2 and torch.equal(changed, converted(frames))
+    with torch.no_grad():  # another autograd mode
+        image_networks._scaled_planes(frames)
+    with torch.inference_mode():
+        image_networks._scaled_planes(frames)
+    image_networks._scaled_planes(frames.clone())  # another tensor, the same values
+    assert len(conversions) == 5
+    with torch.inference_mode():  # acting's frames, made in inference mode: no version
+        acting = torch.randint(0, 256, (1, 4, 84, 84), dtype=torch.uint8)
+        image_networks._scaled_planes(acting)
+        assert torch.equal(image_networks._scaled_planes(acting), converted(acting))
+    assert len(conversions) == 7
