@@ -13,7 +13,7 @@ from torch import nn
 
 from dqnlab.algorithm.agent import Agent, epsilon_at, set_mode
 from dqnlab.algorithm.losses import TDLoss, Transitions
-from dqnlab.algorithm.networks import NatureCNN
+from dqnlab.algorithm.networks import NatureCNN, computes_a_function
 from dqnlab.algorithm.replay import Batch
 from dqnlab.config import resolve_config
 
@@ -216,3 +216,65 @@ def test_set_mode_sets_any_module_in_the_other_mode_and_skips_the_walk_otherwise
     set_mode(counted, training=True)
     set_mode(counted, training=True)
     assert counted[1].calls == 2
+
+
+def _counted_passes(network: nn.Module) -> list[int]:
+    calls = [0]
+    network.register_forward_hook(lambda *_: calls.__setitem__(0, calls[0] + 1))
+    return calls
+
+
+def test_a_fresh_target_copy_is_replaced_by_the_online_network_with_the_same_bits() -> None:
+    """Double DQN with the target copied after every update (drq_epsilon): the online network
+    values s' in one pass instead of the online and the target networks' two, and the
+    weights after four updates are the same bits as with both passes."""
+    config = dataclasses.replace(_NATURE, target="double")
+    torch.manual_seed(3)
+    network = NatureCNN((4, 84, 84), num_actions=6)
+    agents = [Agent(copy.deepcopy(network), 6, config, torch.device("cpu"), seed=0) for _ in "ab"]
+    one_pass, two_passes = agents
+    two_passes._online_stands_for_target = False
+    assert one_pass._online_stands_for_target
+    passes = {id(agent): (_counted_passes(agent.online), _counted_passes(agent.target))
+              for agent in agents}  # fmt: skip
+    for batch in _random_batches(4, seed=5):
+        for agent in agents:
+            agent.sync_target()
+            agent.update(batch)
+    assert [calls[0] for calls in passes[id(one_pass)]] == [8, 0]  # Q(s), Q(s') per update
+    assert [calls[0] for calls in passes[id(two_passes)]] == [8, 4]
+    for a, b in zip(one_pass.online.parameters(), two_passes.online.parameters(), strict=True):
+        assert torch.equal(a, b)
+
+
+def test_the_target_network_is_used_once_either_network_changed_since_the_copy() -> None:
+    config = dataclasses.replace(_NATURE, target="double")
+    torch.manual_seed(3)
+    agent = Agent(NatureCNN((4, 84, 84), num_actions=6), 6, config, torch.device("cpu"), seed=0)
+    target_passes = _counted_passes(agent.target)
+    first, second, third = _random_batches(3, seed=5)
+    agent.update(first)  # built, never copied: the target
+    assert target_passes == [1]
+    agent.sync_target()
+    agent.update(second)  # a fresh copy: the online network stands in for it
+    agent.update(third)  # the optimizer stepped since the copy: the target again
+    assert target_passes == [2]
+    agent.sync_target()
+    with torch.no_grad():
+        agent.target.features[0].bias.add_(0.0)  # any change in place, even of nothing
+    agent.update(first)
+    assert target_passes == [3]
+
+
+def test_only_networks_that_compute_a_function_of_their_input_may_stand_in() -> None:
+    class OwnLinear(nn.Linear):
+        pass
+
+    assert computes_a_function(NatureCNN((4, 84, 84), num_actions=6))
+    assert not computes_a_function(nn.Sequential(nn.Linear(4, 4), nn.Dropout(0.1)))
+    assert not computes_a_function(nn.Sequential(OwnLinear(4, 4)))  # its forward may differ
+    torch.manual_seed(3)
+    dropout = nn.Sequential(nn.Flatten(), nn.Linear(4, 2), nn.Dropout())
+    for target, network in [("max", NatureCNN((4, 84, 84), num_actions=6)), ("double", dropout)]:
+        config = dataclasses.replace(_NATURE, target=target)
+        assert not Agent(network, 2, config, torch.device("cpu"), seed=0)._online_stands_for_target

@@ -23,9 +23,13 @@ from torch import nn
 from dqnlab.algorithm.augmentation import build_augmentation
 from dqnlab.algorithm.encoders import torch_dtype
 from dqnlab.algorithm.heads import has_noise, sample_noise
-from dqnlab.algorithm.losses import build_loss
+from dqnlab.algorithm.losses import TDLoss, build_loss
 from dqnlab.algorithm.minibatch import Batch, Minibatch, Transitions
-from dqnlab.algorithm.networks import build_q_network, recorded_network_name
+from dqnlab.algorithm.networks import (
+    build_q_network,
+    computes_a_function,
+    recorded_network_name,
+)
 from dqnlab.algorithm.optim import build_optimizer
 from dqnlab.algorithm.part_generators import (
     attach_generators,
@@ -113,6 +117,10 @@ class Agent:
         self._check_priorities()
         self._build_drawing_parts(seed)
         self._build_update(compile_update, update_graph)
+        self._online_stands_for_target = (
+            not compile_update and update_graph == "off" and _online_may_stand_for_target(self)
+        )
+        self._synced_versions: tuple[int, ...] = ()
 
     def _build_optimizer(self, capturable: bool) -> torch.optim.Optimizer:
         config = self.config
@@ -283,8 +291,9 @@ class Agent:
                 ),
                 window=None,
             )
+        target = self.online if self._target_is_a_copy() else self.target
         self._clear_gradients()
-        loss, priorities = self._loss_and_backward(batch)
+        loss, priorities = self._loss_and_backward(batch, target)
         if self.config.max_gradient_norm > 0:
             nn.utils.clip_grad_norm_(self.online.parameters(), self.config.max_gradient_norm)
         self._optimizer_step()
@@ -306,8 +315,24 @@ class Agent:
         if gradients:
             torch._foreach_zero_(gradients)
 
-    def _loss_and_backward(self, batch: Transitions) -> tuple[torch.Tensor, torch.Tensor | None]:
-        output = self.loss(self.online, self.target, batch)
+    def _target_is_a_copy(self) -> bool:
+        """Whether the online network may stand in for the target in this update: the
+        target was copied from it and neither has changed since (no in-place change of a
+        parameter or buffer: the optimizer's steps and `load_state_dict`'s copies bump their
+        versions), and both compute the same function of the input (see
+        `_online_may_stand_for_target`). Double DQN's loss then values s' with one pass
+        instead of two, the same bits: `drq_epsilon` copies the target after every update."""
+        return self._online_stands_for_target and self._synced_versions == self._versions()
+
+    def _versions(self) -> tuple[int, ...]:
+        tensors = [*self.online.parameters(), *self.online.buffers()]
+        tensors += [*self.target.parameters(), *self.target.buffers()]
+        return tuple(tensor._version for tensor in tensors)
+
+    def _loss_and_backward(
+        self, batch: Transitions, target: nn.Module
+    ) -> tuple[torch.Tensor, torch.Tensor | None]:
+        output = self.loss(self.online, target, batch)
         losses = output.losses if batch.weights is None else output.losses * batch.weights
         # Summed as the Lua code accumulates gradients over the minibatch (its RMSProp
         # epsilon assumes that scale), or averaged (loss_reduction).
@@ -317,6 +342,8 @@ class Agent:
 
     def sync_target(self) -> None:
         self.target.load_state_dict(self.online.state_dict())
+        if self._online_stands_for_target:
+            self._synced_versions = self._versions()
 
     def state_dict(self) -> dict[str, Any]:
         return {
@@ -343,6 +370,18 @@ class Agent:
             self.augmentation_generator.set_state(state["augmentation_rng"].cpu())
         restore_generators(self.part_generators, state.get("part_rngs", {}))
         self.updates = int(state["updates"])
+
+
+def _online_may_stand_for_target(agent: Agent) -> bool:
+    """Whether a target network that is a fresh copy of the online network may be replaced
+    by the online network itself: the shipped TD loss with Double DQN's target, on a network
+    whose forward is a function of weights and input (`networks.computes_a_function`), so
+    the two networks' passes on s' are the same bits and `TDLoss.next_values` takes one."""
+    return (
+        type(agent.loss) is TDLoss
+        and agent.config.target == "double"
+        and computes_a_function(agent.online)
+    )
 
 
 def set_mode(network: nn.Module, training: bool) -> None:

@@ -86,7 +86,10 @@ class TDLoss(Loss):
 
     def next_values(self, online: nn.Module, target: nn.Module, batch: Transitions) -> torch.Tensor:
         next_q = target(batch.next_observations)
-        if self.config.target == "max":
+        # The agent passes the online network as the target where the target is an unchanged
+        # copy of it (`Agent._target_is_a_copy`): the online network's choice is then the
+        # greedy action of these very values, and its value their maximum.
+        if self.config.target == "max" or target is online:
             return next_q.max(dim=1).values
         actions = self.next_actions(online, next_q, batch)
         return next_q.gather(1, actions.unsqueeze(1)).squeeze(1)

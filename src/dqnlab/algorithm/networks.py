@@ -35,7 +35,7 @@ import torch
 from torch import nn
 
 from dqnlab.algorithm.encoders import SMALL_CNN_HIDDEN_WIDTH, ObservationEncoder, is_small
-from dqnlab.algorithm.heads import CategoricalHead, build_head, head_q_values
+from dqnlab.algorithm.heads import CategoricalHead, QHead, build_head, head_q_values
 from dqnlab.algorithm.image_networks import (
     DATA_EFFICIENT_HIDDEN_WIDTH,
     NATURE_HIDDEN_WIDTH,
@@ -172,6 +172,24 @@ class DistributionalQNetwork(QNetwork):
         """`forward` and `log_probabilities` from one pass of the torso and head."""
         logits = self.outputs(observations)
         return self.head.q_values(logits), self.head.log_probabilities(logits)
+
+
+# Modules whose forward is a function of their weights and input alone, the same in either
+# mode, with no draws and no state of their own: exact types, since a subclass may override
+# forward. Noisy layers, dropout, batch norm and a user's modules are not among them.
+_FUNCTIONAL_MODULES = frozenset(
+    {
+        nn.Sequential, nn.Conv2d, nn.Linear, nn.ReLU, nn.Flatten, nn.Identity,
+        NatureCNN, NatureTorso, DataEfficientCNN, DataEfficientTorso, MLP, MLPTorso,
+        QNetwork, QHead,
+    }
+)  # fmt: skip
+
+
+def computes_a_function(network: nn.Module) -> bool:
+    """Whether every module of `network` is one of `_FUNCTIONAL_MODULES`: two networks with
+    the same weights then give the same bits for the same input, in any mode."""
+    return all(type(module) in _FUNCTIONAL_MODULES for module in network.modules())
 
 
 def build_q_network(
