@@ -278,3 +278,30 @@ def test_only_networks_that_compute_a_function_of_their_input_may_stand_in() -> 
     for target, network in [("max", NatureCNN((4, 84, 84), num_actions=6)), ("double", dropout)]:
         config = dataclasses.replace(_NATURE, target=target)
         assert not Agent(network, 2, config, torch.device("cpu"), seed=0)._online_stands_for_target
+
+
+class _UsersNetwork(nn.Module):
+    """A user's module: its forward may read the mode, so the agent sets it."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.linear = nn.Linear(4 * 84 * 84, 6)
+
+    def forward(self, frames: torch.Tensor) -> torch.Tensor:
+        return self.linear(frames.flatten(1).float() / 255.0)
+
+
+def test_only_a_network_that_reads_its_mode_is_switched_between_acting_and_updating() -> None:
+    batch = _random_batches(1, seed=5)[0]
+    torch.manual_seed(3)
+    for network, switched in [(NatureCNN((4, 84, 84), num_actions=6), False),
+                              (_UsersNetwork(), True)]:  # fmt: skip
+        agent = Agent(network, 6, _NATURE, torch.device("cpu"), seed=0)
+        walks: list[bool] = []
+        agent.online.train = lambda mode=True, net=agent.online, walks=walks: (  # type: ignore[method-assign]
+            walks.append(mode) or nn.Module.train(net, mode)
+        )
+        agent.q_values(batch.observations[:1])
+        agent.update(batch)
+        agent.q_values(batch.observations[:1])
+        assert walks == ([False, True, False] if switched else [])

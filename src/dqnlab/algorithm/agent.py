@@ -121,6 +121,10 @@ class Agent:
             not compile_update and update_graph == "off" and _online_may_stand_for_target(self)
         )
         self._synced_versions: tuple[int, ...] = ()
+        # A network of modules whose forward ignores the mode needs no switch between acting
+        # (eval) and updating (train): `Module.train` walks every module, a walk at each
+        # switch, 6% of a CartPole step.
+        self._mode_matters = not computes_a_function(self.online)
 
     def _build_optimizer(self, capturable: bool) -> torch.optim.Optimizer:
         config = self.config
@@ -224,8 +228,10 @@ class Agent:
 
     def q_values(self, stacked_observations: np.ndarray) -> np.ndarray:
         """Q-values of the online network in eval mode (matters for dropout/batch norm, and
-        gives noisy layers their mean weights)."""
-        set_mode(self.online, training=False)
+        gives noisy layers their mean weights); left as it is for a network whose forward
+        ignores the mode (`networks.computes_a_function`)."""
+        if self._mode_matters:
+            set_mode(self.online, training=False)
         with torch.inference_mode():
             inputs = torch.from_numpy(stacked_observations).to(self.device)
             return self.online(inputs).float().cpu().numpy()
@@ -244,9 +250,10 @@ class Agent:
         # Both networks in train mode for every update, whatever ran before (acting and the
         # held-out statistics use eval mode): a part whose forward depends on the mode
         # (noisy layers, a user's dropout or random draws) then computes the same after a
-        # resume as in a run left alone.
-        set_mode(self.online, training=True)
-        set_mode(self.target, training=True)
+        # resume as in a run left alone. A network whose forward ignores the mode keeps its.
+        if self._mode_matters:
+            set_mode(self.online, training=True)
+            set_mode(self.target, training=True)
         transitions = self._on_device(batch)
         if self.noisy:  # fresh noise for each network (Fortunato et al. 2018, Algorithm 1)
             # Drawn in place into the layers' buffers, outside a graph: each update's own.
