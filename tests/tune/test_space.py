@@ -66,6 +66,37 @@ def test_a_space_file_replaces_and_adds_entries(tmp_path: Path) -> None:
     assert [entry.name for entry in load_space(path)] == ["discount"]
 
 
+def test_a_space_file_drops_default_entries_by_name(tmp_path: Path) -> None:
+    path = tmp_path / "space.toml"
+    path.write_text('drop = ["n_step", "learning_rate"]\n[discount]\nchoices = [0.95, 0.99]\n')
+    names = [entry.name for entry in load_space(path)]
+    defaults = [entry.name for entry in DEFAULT_SPACE]
+    assert names == [name for name in defaults if name not in ("n_step", "learning_rate")] + [
+        "discount"
+    ]
+    path.write_text('drop = ["n_step"]\n[n_step]\nchoices = [1, 3]\n')  # dropped, then given
+    assert {entry.name: entry for entry in load_space(path)}["n_step"].choices == (1, 3)
+
+
+@pytest.mark.parametrize(
+    ("text", "message"),
+    [
+        ('drop = ["nstep"]\n', "drop names 'nstep', which is not in the default space"),
+        ('drop = "n_step"\n', "drop = 'n_step' must be a list of setting names"),
+        (
+            'extend_default = false\ndrop = ["n_step"]\n[discount]\nchoices = [0.9]\n',
+            "with extend_default = false: there is no default entry to drop",
+        ),
+    ],
+)
+def test_a_bad_drop_is_refused_in_one_line(tmp_path: Path, text: str, message: str) -> None:
+    path = tmp_path / "space.toml"
+    path.write_text(text)
+    with pytest.raises(ConfigError) as error:
+        load_space(path)
+    assert message in str(error.value) and "\n" not in str(error.value)
+
+
 def test_a_parts_own_setting_is_searched_like_any_other(tmp_path: Path) -> None:
     path = tmp_path / "space.toml"
     path.write_text(

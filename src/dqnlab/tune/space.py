@@ -123,7 +123,8 @@ def _bounds(entry: SearchEntry, steps: int) -> tuple[float, float]:
 def load_space(path: Path | None) -> tuple[SearchEntry, ...]:
     """The default space, with a user's TOML file's entries over it (`[learning_rate]`
     then `kind = "float-log"`, `low = 1e-5`, `high = 1e-3`; a part's own setting as
-    `["parts.loss.tau"]`). `extend_default = false` at the top searches the file's alone."""
+    `["parts.loss.tau"]`). `extend_default = false` at the top searches the file's alone;
+    `drop = ["n_step", ...]` at the top leaves those default entries out."""
     if path is None:
         return DEFAULT_SPACE
     try:
@@ -136,11 +137,32 @@ def load_space(path: Path | None) -> tuple[SearchEntry, ...]:
     if not isinstance(extend, bool):
         raise ConfigError(f"--space {path}: extend_default = {extend!r} must be true or false")
     space = {entry.name: entry for entry in (DEFAULT_SPACE if extend else ())}
+    for name in _dropped(path, values.pop("drop", []), extend):
+        del space[name]
     for name, table in values.items():
         space[name] = _entry(name, table)
     if not space:
         raise ConfigError(f"--space {path} searches no setting")
     return tuple(space.values())
+
+
+def _dropped(path: Path, drop: Any, extend: bool) -> list[str]:
+    """The default entries `drop = [...]` leaves out, each checked to be one."""
+    if not isinstance(drop, list) or not all(isinstance(name, str) for name in drop):
+        raise ConfigError(f"--space {path}: drop = {drop!r} must be a list of setting names")
+    if drop and not extend:
+        raise ConfigError(
+            f"--space {path}: drop = {drop!r} with extend_default = false: there is no "
+            "default entry to drop"
+        )
+    defaults = [entry.name for entry in DEFAULT_SPACE]
+    for name in drop:
+        if name not in defaults:
+            raise ConfigError(
+                f"--space {path}: drop names {name!r}, which is not in the default space "
+                f"({', '.join(defaults)})"
+            )
+    return list(dict.fromkeys(drop))
 
 
 def _entry(name: str, table: Any) -> SearchEntry:
