@@ -273,3 +273,31 @@ def test_a_tiny_tune_of_two_seeds_keeps_a_run_per_seed_and_carries_on_a_killed_o
     # A study of one seed per trial is another plan.
     with pytest.raises(DqnlabError, match="it differs in seeds"):
         open_study(study_dir, TINY)
+
+
+def test_env_kwargs_and_wrappers_make_every_trials_environment(
+    tmp_path: Path, capsys, monkeypatch
+) -> None:
+    """CountEnv cannot be made without `length`; every game of it lasts `length` steps of
+    reward 1, doubled by the wrapper: a trial's value of 14 says both reached it."""
+    count = "tests.envs.test_env_args"
+    study_dir = tmp_path / "study"
+    status, err = dqnlab_main(
+        capsys, monkeypatch, "tune", "--env", f"{count}:CountEnv", "--trials", "1",
+        "--steps", "300", "--evaluations", "2", "--set", "eval_steps=50",
+        "--set", "mlp_hidden_sizes=[8]",
+        "--env-kwarg", "length=7", "--env-kwarg", "width=3",
+        "--wrapper", f"{count}:DoubleReward", "--study-dir", str(study_dir),
+    )  # fmt: skip
+    assert status == 0, err
+    with (study_dir / "trials.csv").open() as handle:
+        (row,) = list(csv.DictReader(handle))
+    assert row["state"] == "COMPLETE" and float(row["value"]) == 14.0
+    text = (study_dir / "best.toml").read_text()
+    assert "env_kwargs = {length = 7, width = 3}" in text
+    assert f'env_wrappers = ["{count}:DoubleReward"]' in text
+    bad, err = dqnlab_main(
+        capsys, monkeypatch, "tune", "--env", f"{count}:CountEnv", "--trials", "1",
+        "--steps", "300", "--study-dir", str(tmp_path / "other"),
+    )  # fmt: skip
+    assert bad == 2 and err.count("\n") == 1 and not (tmp_path / "other").exists()

@@ -9,7 +9,7 @@ from typing import Annotated
 
 import typer
 
-from dqnlab.cli.common import ENV_HELP, Device, resolve_device
+from dqnlab.cli.common import ENV_HELP, Device, EnvKwargs, Wrappers, resolve_device
 from dqnlab.errors import DqnlabError
 
 Trials = Annotated[
@@ -66,6 +66,8 @@ def tune(
     steps: Steps,
     preset: StartPreset = None,
     set_: FixedSettings = None,
+    env_kwarg: EnvKwargs = None,
+    wrapper: Wrappers = None,
     space: SpaceFile = None,
     evaluations: Evaluations = 10,
     pruner: Pruner = "median",
@@ -88,7 +90,7 @@ def tune(
         import optuna  # noqa: F401
     except ImportError:
         raise DqnlabError("dqnlab tune needs Optuna: pip install 'dqnlab[tune]'") from None
-    from dqnlab.config import parse_overrides
+    from dqnlab.config import parse_overrides, parse_pairs
     from dqnlab.envs import is_atari
     from dqnlab.run.rundir import preset_label, safe_name
     from dqnlab.tune.driver import tune as run_tune
@@ -98,6 +100,8 @@ def tune(
     _check_counts(trials, steps, evaluations, jobs, pruner, seeds)
     preset = preset or ("nature" if is_atari(env) else "classic")
     fixed = parse_overrides(set_ or [])
+    env_kwargs = parse_pairs(env_kwarg or [], "--env-kwarg")
+    fixed = _with_env_arguments(preset, fixed, env, env_kwargs, wrapper or [])
     searched = load_space(space)
     check_space(searched, preset, fixed, env, steps)
     plan = TunePlan(env=env, preset=preset, steps=steps, space=searched, fixed=fixed,
@@ -109,6 +113,23 @@ def tune(
     command = shlex.join(["dqnlab", *sys.argv[1:]])
     study = run_tune(study_dir, plan, trials, torch_device, command, jobs=jobs)
     _say_result(study, study_dir / BEST_FILE)
+
+
+def _with_env_arguments(
+    preset: str, fixed: dict, env: str, env_kwargs: dict, wrappers: list[str]
+) -> dict:
+    """`--env-kwarg` and `--wrapper` as fixed settings of every trial, added to the
+    preset's and --set's as `train` adds them (`with_env_arguments`); the environment the
+    trials will make is made once first (`check_env`), so one that cannot be is refused
+    before anything is written."""
+    from dqnlab.config import resolve_config, with_env_arguments
+    from dqnlab.envs import check_env
+
+    config = with_env_arguments(resolve_config(preset, fixed, env=env), env_kwargs, wrappers)
+    check_env(config)
+    if not env_kwargs and not wrappers:
+        return fixed
+    return {**fixed, "env_kwargs": config.env_kwargs, "env_wrappers": list(config.env_wrappers)}
 
 
 def _check_counts(
