@@ -6,6 +6,11 @@ from __future__ import annotations
 
 import csv
 import json
+import os
+import signal
+import subprocess
+import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -14,6 +19,7 @@ import torch
 optuna = pytest.importorskip(
     "optuna", reason="dqnlab tune needs the extra: pip install -e '.[tune]'"
 )
+from optuna.storages.journal import JournalFileBackend, JournalStorage  # noqa: E402
 from optuna.trial import TrialState  # noqa: E402
 
 from dqnlab.config import resolve_config  # noqa: E402
@@ -24,7 +30,7 @@ from dqnlab.run.train import train as real_train  # noqa: E402
 from dqnlab.tune import trials as trials_module  # noqa: E402
 from dqnlab.tune.driver import shares, tune  # noqa: E402
 from dqnlab.tune.space import DEFAULT_SPACE  # noqa: E402
-from dqnlab.tune.study import TunePlan, open_study, trial_run_dir  # noqa: E402
+from dqnlab.tune.study import STUDY_NAME, TunePlan, open_study, trial_run_dir  # noqa: E402
 from tests.helpers import dqnlab_main  # noqa: E402
 
 CPU = torch.device("cpu")
@@ -301,3 +307,33 @@ def test_env_kwargs_and_wrappers_make_every_trials_environment(
         "--steps", "300", "--study-dir", str(tmp_path / "other"),
     )  # fmt: skip
     assert bad == 2 and err.count("\n") == 1 and not (tmp_path / "other").exists()
+
+
+def test_ctrl_c_stops_every_job_at_a_checkpoint_in_one_line_for_the_next_tune(
+    tmp_path: Path,
+) -> None:
+    """SIGINT to the process group, as Ctrl-C sends it, while two jobs train a trial each."""
+    study_dir = tmp_path / "study"
+    args = [sys.executable, "-m", "dqnlab", "tune", "--env", "CartPole-v1", "--trials", "2",
+            "--steps", "30000", "--evaluations", "2", "--pruner", "none", "--jobs", "2",
+            "--set", "mlp_hidden_sizes=[8]", "--set", "checkpoint_period_steps=500",
+            "--study-dir", str(study_dir)]  # fmt: skip
+    process = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                               start_new_session=True)  # fmt: skip
+    checkpoints = [trial_run_dir(study_dir, n) / "checkpoints" for n in (0, 1)]
+    deadline = time.monotonic() + 120
+    while not all(path.is_dir() and any(path.iterdir()) for path in checkpoints):
+        assert process.poll() is None and time.monotonic() < deadline, process.communicate()
+        time.sleep(0.2)
+    os.killpg(process.pid, signal.SIGINT)
+    _, err = process.communicate(timeout=120)
+    assert process.returncode == 130
+    assert err == (
+        "dqnlab: error: stopped by SIGINT in trials 0 and 1, each after saving a checkpoint; "
+        "the same command carries the study on\n"
+    )
+    storage = JournalStorage(JournalFileBackend(str(study_dir / "journal.log")))
+    study = optuna.load_study(study_name=STUDY_NAME, storage=storage)
+    # Both trials wait, RUNNING, for the next tune (which carries stale trials on first).
+    assert [(t.number, t.state) for t in study.trials] == [(0, TrialState.RUNNING),
+                                                           (1, TrialState.RUNNING)]  # fmt: skip

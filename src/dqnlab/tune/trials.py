@@ -38,15 +38,20 @@ from dqnlab.tune.study import TunePlan, trial_run_dirs, trials_dir
 
 
 class TuneStopped(DqnlabError):
-    """SIGINT or SIGTERM stopped a trial's run after its checkpoint: the tune stops too,
-    and the same command carries it on."""
+    """SIGINT or SIGTERM stopped a trial's run after its checkpoint (with `--jobs`, one
+    trial in each job): the tune stops too, and the same command carries it on."""
 
-    def __init__(self, signal_name: str, number: int) -> None:
+    def __init__(self, signal_name: str, *numbers: int) -> None:
+        if len(numbers) == 1:
+            where = f"trial {numbers[0]} after saving a checkpoint"
+        else:
+            listed = ", ".join(map(str, numbers[:-1])) + f" and {numbers[-1]}"
+            where = f"trials {listed}, each after saving a checkpoint"
         super().__init__(
-            f"stopped by {signal_name} in trial {number} after saving a checkpoint; "
-            "the same command carries the study on"
+            f"stopped by {signal_name} in {where}; the same command carries the study on"
         )
         self.exit_status = 130 if signal_name == "SIGINT" else 143
+        self.signal_name, self.numbers = signal_name, numbers
 
 
 def trial_config(plan: TunePlan, overrides: dict[str, Any], threads: int | None) -> Config:
