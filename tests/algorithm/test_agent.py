@@ -247,22 +247,34 @@ def test_a_fresh_target_copy_is_replaced_by_the_online_network_with_the_same_bit
         assert torch.equal(a, b)
 
 
-def test_the_target_network_is_used_once_either_network_changed_since_the_copy() -> None:
-    config = dataclasses.replace(_NATURE, target="double")
+@pytest.mark.parametrize("optimizer", ["deepmind_rmsprop", "adam"])
+def test_the_target_network_is_used_once_either_network_changed_since_the_copy(optimizer) -> None:
+    """Whatever changed the weights: PyTorch's fused Adam steps without bumping the
+    parameters' version counters, so only comparing the weights themselves can tell."""
+    config = dataclasses.replace(_NATURE, target="double", optimizer=optimizer)
     torch.manual_seed(3)
     agent = Agent(NatureCNN((4, 84, 84), num_actions=6), 6, config, torch.device("cpu"), seed=0)
     target_passes = _counted_passes(agent.target)
     first, second, third = _random_batches(3, seed=5)
-    agent.update(first)  # built, never copied: the target
+    agent.update(first)  # built as a copy: the online network stands in for it
+    assert target_passes == [0]
+    agent.update(second)  # the optimizer stepped since: the target
     assert target_passes == [1]
     agent.sync_target()
-    agent.update(second)  # a fresh copy: the online network stands in for it
-    agent.update(third)  # the optimizer stepped since the copy: the target again
-    assert target_passes == [2]
+    with torch.no_grad():
+        agent.target.features[0].bias.add_(0.0)  # in place, the same bits: still a copy
+    agent.update(third)
+    assert target_passes == [1]
     agent.sync_target()
     with torch.no_grad():
-        agent.target.features[0].bias.add_(0.0)  # any change in place, even of nothing
+        agent.target.features[0].bias[0] = -agent.online.features[0].bias[0]  # one weight
     agent.update(first)
+    assert target_passes == [2]
+    agent.sync_target()
+    with torch.no_grad():  # the same value, another bit: 0.0 and -0.0
+        agent.target.features[0].bias[0] = 0.0
+        agent.online.features[0].bias[0] = -0.0
+    agent.update(second)
     assert target_passes == [3]
 
 

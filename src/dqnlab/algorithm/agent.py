@@ -120,7 +120,6 @@ class Agent:
         self._online_stands_for_target = (
             not compile_update and update_graph == "off" and _online_may_stand_for_target(self)
         )
-        self._synced_versions: tuple[int, ...] = ()
         # A network of modules whose forward ignores the mode needs no switch between acting
         # (eval) and updating (train): `Module.train` walks every module, a walk at each
         # switch, 6% of a CartPole step.
@@ -323,18 +322,21 @@ class Agent:
             torch._foreach_zero_(gradients)
 
     def _target_is_a_copy(self) -> bool:
-        """Whether the online network may stand in for the target in this update: the
-        target was copied from it and neither has changed since (no in-place change of a
-        parameter or buffer: the optimizer's steps and `load_state_dict`'s copies bump their
-        versions), and both compute the same function of the input (see
-        `_online_may_stand_for_target`). Double DQN's loss then values s' with one pass
-        instead of two, the same bits: `drq_epsilon` copies the target after every update."""
-        return self._online_stands_for_target and self._synced_versions == self._versions()
-
-    def _versions(self) -> tuple[int, ...]:
-        tensors = [*self.online.parameters(), *self.online.buffers()]
-        tensors += [*self.target.parameters(), *self.target.buffers()]
-        return tuple(tensor._version for tensor in tensors)
+        """Whether the online network may stand in for the target in this update: both
+        compute the same function of the input (see `_online_may_stand_for_target`) and the
+        target's weights and buffers are the online network's, bit for bit. Double DQN's loss
+        then values s' with one pass instead of two, the same bits: `drq_epsilon` copies the
+        target after every update. Compared at every update, whatever changed them (an
+        optimizer's step, fused or not, a load, a user's code): the first weights differ
+        where the target is not a fresh copy (microseconds), and the whole comparison of
+        equal Nature networks takes a fraction of a millisecond."""
+        if not self._online_stands_for_target:
+            return False
+        online = [*self.online.parameters(), *self.online.buffers()]
+        target = [*self.target.parameters(), *self.target.buffers()]
+        return len(online) == len(target) and all(
+            _same_bits(a, b) for a, b in zip(online, target, strict=True)
+        )
 
     def _loss_and_backward(
         self, batch: Transitions, target: nn.Module
@@ -349,8 +351,6 @@ class Agent:
 
     def sync_target(self) -> None:
         self.target.load_state_dict(self.online.state_dict())
-        if self._online_stands_for_target:
-            self._synced_versions = self._versions()
 
     def state_dict(self) -> dict[str, Any]:
         return {
@@ -389,6 +389,19 @@ def _online_may_stand_for_target(agent: Agent) -> bool:
         and agent.config.target == "double"
         and computes_a_function(agent.online)
     )
+
+
+# Integers of each float's size: two tensors viewed as them are equal only where every
+# element has the same bits (torch.equal on floats takes -0.0 for 0.0, and NaN for no NaN).
+_BITS = {torch.float64: torch.int64, torch.float32: torch.int32,
+         torch.float16: torch.int16, torch.bfloat16: torch.int16}  # fmt: skip
+
+
+def _same_bits(a: torch.Tensor, b: torch.Tensor) -> bool:
+    if a.shape != b.shape or a.dtype != b.dtype:
+        return False
+    bits = _BITS.get(a.dtype)
+    return torch.equal(a, b) if bits is None else torch.equal(a.view(bits), b.view(bits))
 
 
 def set_mode(network: nn.Module, training: bool) -> None:
