@@ -109,3 +109,10 @@ def test_the_matmul_and_the_update_figures() -> None:
     assert figures["nature_update_fraction_of_matmul"] == pytest.approx(
         100.0 / matmul.median_gflop_per_s
     )
+
+
+def test_a_target_copied_after_every_update_is_counted_as_training_sees_it() -> None:
+    """drq_epsilon's schedule (the target copied after every update): the online network
+    stands in for the copy, so the double target costs no more than the max target."""
+    agent = _agent("nature", {"target": "double", "target_update_steps": 1}, 4)
+    assert update_flops(agent, _replay().sample()) == 2_182_610_944  # B (4 F - F_first)

@@ -117,13 +117,6 @@ class Agent:
         self._check_priorities()
         self._build_drawing_parts(seed)
         self._build_update(compile_update, update_graph)
-        self._online_stands_for_target = (
-            not compile_update and update_graph == "off" and _online_may_stand_for_target(self)
-        )
-        # A network of modules whose forward ignores the mode needs no switch between acting
-        # (eval) and updating (train): `Module.train` walks every module, a walk at each
-        # switch, 6% of a CartPole step.
-        self._mode_matters = not computes_a_function(self.online)
 
     def _build_optimizer(self, capturable: bool) -> torch.optim.Optimizer:
         config = self.config
@@ -163,6 +156,13 @@ class Agent:
         self._graph = (
             CapturedUpdate(self._graph_step, self._staging.owns) if update_graph == "cuda" else None
         )
+        self._online_stands_for_target = (
+            not compile_update and update_graph == "off" and _online_may_stand_for_target(self)
+        )
+        # A network of modules whose forward ignores the mode needs no switch between acting
+        # (eval) and updating (train): `Module.train` walks every module, a walk at each
+        # switch, 6% of a CartPole step.
+        self._mode_matters = not computes_a_function(self.online)
 
     def _check_priorities(self) -> None:
         """A user's loss part must give priorities for prioritized replay: ask it once, on a
@@ -297,7 +297,7 @@ class Agent:
                 ),
                 window=None,
             )
-        target = self.online if self._target_is_a_copy() else self.target
+        target = self.online if self.target_is_a_copy() else self.target
         self._clear_gradients()
         loss, priorities = self._loss_and_backward(batch, target)
         if self.config.max_gradient_norm > 0:
@@ -321,7 +321,7 @@ class Agent:
         if gradients:
             torch._foreach_zero_(gradients)
 
-    def _target_is_a_copy(self) -> bool:
+    def target_is_a_copy(self) -> bool:
         """Whether the online network may stand in for the target in this update: both
         compute the same function of the input (see `_online_may_stand_for_target`) and the
         target's weights and buffers are the online network's, bit for bit. Double DQN's loss

@@ -87,7 +87,7 @@ class TDLoss(Loss):
     def next_values(self, online: nn.Module, target: nn.Module, batch: Transitions) -> torch.Tensor:
         next_q = target(batch.next_observations)
         # The agent passes the online network as the target where the target is an unchanged
-        # copy of it (`Agent._target_is_a_copy`): the online network's choice is then the
+        # copy of it (`Agent.target_is_a_copy`): the online network's choice is then the
         # greedy action of these very values, and its value their maximum.
         if self.config.target == "max" or target is online:
             return next_q.max(dim=1).values

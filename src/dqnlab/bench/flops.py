@@ -29,6 +29,10 @@ FLOPs of the first layer, the update of `Agent.update` per minibatch of B is:
 
     update = B (4 F - F_first) with target = "max", B (5 F - F_first) with "double".
 
+Where the target network is a copy of the online network at the update (a preset that
+copies it after every update: `drq_epsilon`), the online network stands in for it and
+Double DQN's target takes the one pass on s': B (4 F - F_first) with either target.
+
 The Nature CNN on 4x84x84 with 4 actions: F = 18,690,048 (conv 8x8/4 to 32x20x20
 6,553,600; conv 4x4/2 to 64x9x9 5,308,416; conv 3x3/1 to 64x7x7 3,612,672; linear
 3136-512 3,211,264; linear 512-4 4,096), F_first = 6,553,600, so the update of a
@@ -47,7 +51,7 @@ from torch.utils.flop_counter import FlopCounterMode
 
 from dqnlab.algorithm.agent import Agent
 from dqnlab.algorithm.minibatch import Batch
-from dqnlab.bench.measure import call_seconds
+from dqnlab.bench.measure import call_seconds, copies_target_every_update
 
 # 2 x 2048^3 = 17.2 GFLOP per product: about 80 ms at the 2 cores' 215 GFLOP/s, far
 # above the timer's and the call's overheads.
@@ -56,10 +60,17 @@ MATMUL_REPEATS = 10
 
 
 def update_flops(agent: Agent, batch: Batch) -> int:
-    """The FLOPs of one `agent.update(batch)` (the module's convention). The update runs:
-    the agent has learned one step more. A compiled update (`compile_update`) runs eagerly
-    under the counter, as torch.compile does under any dispatch mode; it compiles at its
-    next call."""
+    """The FLOPs of one `agent.update(batch)` (the module's convention), with the target as
+    training's updates see it: a copy of the online network where training copies it after
+    every update (then Double DQN's target takes one pass on s', see the module's note),
+    otherwise a network the online one has moved away from (an update first where they are
+    still equal, as in a freshly built agent). The updates run: the agent has learned one
+    or two steps more. A compiled update (`compile_update`) runs eagerly under the counter,
+    as torch.compile does under any dispatch mode; it compiles at its next call."""
+    if copies_target_every_update(agent):
+        agent.sync_target()
+    elif agent.target_is_a_copy():
+        agent.update(batch)
     with FlopCounterMode(display=False) as counter:
         agent.update(batch)
     return int(counter.get_total_flops())

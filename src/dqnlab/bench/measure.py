@@ -91,12 +91,29 @@ def call_seconds(action: Callable[[], object], repeats: int) -> np.ndarray:
     return seconds
 
 
+def copies_target_every_update(agent: Agent) -> bool:
+    """Whether training copies the target network after every update (`drq_epsilon`:
+    `target_update_steps` at most `update_period_steps`), so that every update sees a
+    target that is a copy of the online network (`Agent.target_is_a_copy`)."""
+    return agent.config.target_update_steps <= agent.config.update_period_steps
+
+
+def update_as_in_training(agent: Agent, batch: Batch) -> None:
+    """One update with the target network as training's updates see it: the copy after it
+    where training copies after every update; elsewhere the update moves the online network
+    away from the target, as between training's copies."""
+    agent.update(batch)[0].item()  # .item() waits
+    if copies_target_every_update(agent):
+        agent.sync_target()
+
+
 def median_update_ms(agent: Agent, batch: Batch, repeats: int = 50) -> float:
     """The median time of `repeats` updates on one minibatch (after 5 not timed), each
-    waited for, in milliseconds."""
+    waited for, in milliseconds; with the target copy after each where training copies the
+    target after every update (`update_as_in_training`)."""
     for _ in range(5):
-        agent.update(batch)
-    seconds = call_seconds(lambda: agent.update(batch)[0].item(), repeats)  # .item() waits
+        update_as_in_training(agent, batch)
+    seconds = call_seconds(lambda: update_as_in_training(agent, batch), repeats)
     return float(np.median(seconds) * 1e3)
 
 
