@@ -158,3 +158,35 @@ def test_busy_cores_are_warned_of_only_for_several_threads_on_the_cpu(
 def test_threads_below_zero_is_refused_in_one_line() -> None:
     with pytest.raises(ConfigError, match="threads = -1 must be zero or more"):
         _config(threads=-1, total_steps=600)
+
+
+# Reads MKL's switch in a fresh process: PyTorch's pip builds for x86 link MKL into
+# libtorch_cpu and export this service function; other builds have no MKL to ask.
+MKL_DYNAMIC_PROBE = """
+import ctypes, os, sys, torch
+from dqnlab.config import resolve_config
+from dqnlab.run.determinism import apply_threads
+library = ctypes.CDLL(os.path.join(os.path.dirname(torch.__file__), "lib", "libtorch_cpu.so"))
+if not hasattr(library, "mkl_serv_get_dynamic"):
+    sys.exit(3)
+before = library.mkl_serv_get_dynamic()
+apply_threads(resolve_config("classic", env="CartPole-v1", threads=int(sys.argv[1])))
+print(before, library.mkl_serv_get_dynamic(), torch.get_num_threads())
+"""
+
+
+@pytest.mark.parametrize("threads", [0, 1])
+def test_a_run_leaves_mkl_no_choice_of_its_thread_count(threads: int) -> None:
+    # MKL_DYNAMIC lets MKL run a product on fewer threads than asked, so in another order:
+    # on until something calls torch.set_num_threads, which a run at `threads = 0` did not.
+    probe = subprocess.run(
+        [sys.executable, "-c", MKL_DYNAMIC_PROBE, str(threads)], capture_output=True,
+        text=True, env={**os.environ, "OMP_NUM_THREADS": "2"}, check=False,
+    )  # fmt: skip
+    if probe.returncode == 3:
+        pytest.skip("this PyTorch build has no MKL to ask")
+    assert probe.returncode == 0, probe.stderr
+    before, after, count = probe.stdout.split()
+    assert before == "1", "MKL's default changed: this test no longer shows anything"
+    assert after == "0"
+    assert count == str(threads or 2)

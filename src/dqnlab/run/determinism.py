@@ -58,10 +58,22 @@ def resume_warning(config: Config, device: torch.device) -> str | None:
 
 
 def apply_threads(config: Config) -> int:
-    """Set this process's PyTorch threads from `threads` (0: leave PyTorch's default);
-    returns the count the run trains with."""
-    if config.threads > 0:
-        torch.set_num_threads(config.threads)
+    """Set this process's PyTorch threads from `threads` (0: PyTorch's default count, set
+    again explicitly); returns the count the run trains with.
+
+    The count is always set through `torch.set_num_threads`, the default one too, because
+    that call is also where PyTorch turns off MKL's own choice of thread count
+    (`mkl_set_dynamic(false)`, ATen's ParallelOpenMP.cpp); a process that never calls it
+    keeps MKL_DYNAMIC on, under which MKL may run a matrix product on fewer threads than
+    asked, and a product split another way adds in another order. Intel's conditions for
+    reproducible results ask for it off (oneMKL developer guide, "Reproducibility
+    Conditions"). A run left at `threads = 0` therefore computes as one set to the same
+    count. Until 2026-12-05 such runs kept MKL's choice on (checked: `mkl_serv_get_dynamic`
+    1 before, 0 after): a cause that fits a Pong resume test which failed once in about
+    twenty tries on a loaded Xeon, in the last bits of its losses, and never on the AMD
+    EPYC, where MKL gives the Nature network's products the same bits at one thread and
+    two (so its choice of count cannot show there)."""
+    torch.set_num_threads(config.threads if config.threads > 0 else torch.get_num_threads())
     return torch.get_num_threads()
 
 
