@@ -9,7 +9,13 @@ import torch
 import torch.nn.functional as F
 
 from dqnlab.algorithm.agent import agent_for_input
-from dqnlab.algorithm.augmentation import RandomShift, build_augmentation, shift
+from dqnlab.algorithm.augmentation import (
+    RandomShift,
+    build_augmentation,
+    shift,
+    shift_by_gather,
+    shift_by_slices,
+)
 from dqnlab.algorithm.replay import Batch
 from dqnlab.config import resolve_config
 from dqnlab.errors import ConfigError
@@ -18,7 +24,12 @@ from dqnlab.errors import ConfigError
 FRAME = torch.tensor([[10 * i + j for j in range(5)] for i in range(4)], dtype=torch.uint8)
 
 
-def test_shift_by_hand() -> None:
+# `shift` itself (slices on the CPU) and both ways to it: the gathers run on a GPU.
+SHIFTS = [shift, shift_by_gather, shift_by_slices]
+
+
+@pytest.mark.parametrize("shift", SHIFTS)
+def test_shift_by_hand(shift) -> None:
     frames = FRAME.expand(2, 3, 4, 5)  # two observations of three stacked frames
     offsets = torch.tensor([[0, 2], [1, 0]])  # pad 1: (dy, dx) - 1 = (-1, +1) and (0, -1)
     shifted = shift(frames, offsets, pad=1)
@@ -37,7 +48,8 @@ def test_shift_by_hand() -> None:
     assert torch.equal(shift(frames, torch.tensor([[1, 1], [1, 1]]), pad=1), frames)
 
 
-def test_shift_is_replicate_padding_then_a_crop() -> None:
+@pytest.mark.parametrize("shift", SHIFTS)
+def test_shift_is_replicate_padding_then_a_crop(shift) -> None:
     generator = torch.Generator().manual_seed(3)
     frames = torch.randint(0, 256, (6, 4, 84, 84), dtype=torch.uint8, generator=generator)
     offsets = torch.randint(0, 9, (6, 2), generator=generator)

@@ -19,6 +19,7 @@ the states, another for the next states). The shipped part:
 from __future__ import annotations
 
 import torch
+import torch.nn.functional as F
 
 from dqnlab.config import Config
 from dqnlab.errors import ConfigError
@@ -64,7 +65,21 @@ def shift(observations: torch.Tensor, offsets: torch.Tensor, pad: int) -> torch.
     """Each observation (batch, ..., H, W) cropped out of its border-replicated padding
     of `pad` pixels at `offsets` (batch, 2): (dy, dx) in 0..2 pad, (pad, pad) leaving it
     as it is. Output pixel (i, j) is input pixel (clamp(i + dy - pad), clamp(j + dx - pad)),
-    gathered in the stored dtype, every stacked frame of an observation alike."""
+    in the stored dtype, every stacked frame of an observation alike.
+
+    Two ways to the same pixels (moved, never computed: the same bytes either way): on the
+    CPU one slice copy per observation out of the padded batch (`shift_by_slices`), on
+    other devices a gather without host synchronisation, which a CUDA graph can capture
+    (`shift_by_gather`). On the CPU the gathers took 2.7 ms for a 32 x 4 x 84 x 84 batch
+    and the slices 0.5 ms (one thread, 2026-12-05, AMD EPYC): DrQ(eps) shifts two such
+    batches in every update."""
+    if observations.device.type == "cpu":
+        return shift_by_slices(observations, offsets, pad)
+    return shift_by_gather(observations, offsets, pad)
+
+
+def shift_by_gather(observations: torch.Tensor, offsets: torch.Tensor, pad: int) -> torch.Tensor:
+    """`shift` as two gathers, of each output pixel's source row and then its column."""
     batch = observations.shape[0]
     height, width = observations.shape[-2:]
     device = observations.device
@@ -76,6 +91,19 @@ def shift(observations: torch.Tensor, offsets: torch.Tensor, pad: int) -> torch.
     shape = planes.shape
     shifted = planes.gather(2, rows[:, None, :, None].expand(shape))
     shifted = shifted.gather(3, columns[:, None, None, :].expand(shape))
+    return shifted.reshape(observations.shape)
+
+
+def shift_by_slices(observations: torch.Tensor, offsets: torch.Tensor, pad: int) -> torch.Tensor:
+    """`shift` as the padded batch, written once, and one slice of it copied per
+    observation (the offsets read on the host)."""
+    batch = observations.shape[0]
+    height, width = observations.shape[-2:]
+    planes = observations.reshape(batch, -1, height, width)
+    padded = F.pad(planes, (pad, pad, pad, pad), mode="replicate")
+    shifted = torch.empty(planes.shape, dtype=planes.dtype, device=planes.device)
+    for index, (dy, dx) in enumerate(offsets.tolist()):
+        shifted[index] = padded[index, :, dy : dy + height, dx : dx + width]
     return shifted.reshape(observations.shape)
 
 
