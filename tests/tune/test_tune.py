@@ -29,7 +29,7 @@ from dqnlab.run.train import STOPPED_BY_HOOK, TrainResult  # noqa: E402
 from dqnlab.run.train import train as real_train  # noqa: E402
 from dqnlab.tune import trials as trials_module  # noqa: E402
 from dqnlab.tune.driver import shares, tune  # noqa: E402
-from dqnlab.tune.space import DEFAULT_SPACE  # noqa: E402
+from dqnlab.tune.space import DEFAULT_SPACE, suggest  # noqa: E402
 from dqnlab.tune.study import STUDY_NAME, TunePlan, open_study, trial_run_dir  # noqa: E402
 from tests.helpers import dqnlab_main  # noqa: E402
 
@@ -141,6 +141,31 @@ def test_a_killed_tune_carries_on_with_no_trial_run_twice_and_none_lost(
     assert len(study.trials) == 4 and not study.get_trials(states=(TrialState.RUNNING,))
     with (trial_run_dir(study_dir, 2) / "evaluations.csv").open() as handle:
         assert [row["step"] for row in csv.DictReader(handle)] == ["150", "300"]
+
+
+def _draw(study_dir: Path, trials: int) -> list[dict]:
+    """Ask for `trials` trials in the study as a new tune process would (the study opened
+    anew, its sampler made anew) and tell each a value; their settings."""
+    study = open_study(study_dir, TINY)
+    drawn = []
+    for _ in range(trials):
+        trial = study.ask()
+        settings = suggest(trial, TINY.space, TINY.steps)
+        study.tell(trial, float(len(study.get_trials())))
+        drawn.append(settings)
+    return drawn
+
+
+def test_a_tune_carried_on_draws_what_one_left_alone_draws_and_no_trial_again(
+    tmp_path: Path,
+) -> None:
+    # Five of the first ten trials are the sampler's random start-up draws: a study carried
+    # on after trial 4 once drew trials 5 to 9 with trials 0 to 4's settings.
+    alone = _draw(tmp_path / "alone", 8)
+    carried = [*_draw(tmp_path / "carried", 3), *_draw(tmp_path / "carried", 2)]
+    carried += _draw(tmp_path / "carried", 3)
+    assert carried == alone
+    assert len({json.dumps(settings, sort_keys=True) for settings in alone}) == 8
 
 
 def test_a_study_dir_of_another_environment_is_refused_and_left_as_it_was(

@@ -68,8 +68,8 @@ def _run_workers(study_dir: Path, plan: TunePlan, quota: list[int], device: torc
     context = multiprocessing.get_context("spawn")  # no forked torch threads or locks
     stops: SimpleQueue = context.SimpleQueue()
     workers = [
-        context.Process(target=_worker, args=(study_dir, plan, share, str(device), k + 1, stops))
-        for k, share in enumerate(quota)
+        context.Process(target=_worker, args=(study_dir, plan, share, str(device), stops))
+        for share in quota
     ]
     for worker in workers:
         worker.start()
@@ -105,12 +105,11 @@ def _signals_left_to_workers() -> Iterator[None]:
             signal.signal(number, handler)
 
 
-def _worker(
-    study_dir: Path, plan: TunePlan, share: int, device: str, job: int, stops: SimpleQueue
-) -> None:
-    """A job: `share` new trials on one PyTorch thread, its own sampler seed. A signal
-    stops it after its trial's checkpoint, which it tells the tune's process."""
-    study = open_study(study_dir, plan, seed_offset=job)
+def _worker(study_dir: Path, plan: TunePlan, share: int, device: str, stops: SimpleQueue) -> None:
+    """A job: `share` new trials on one PyTorch thread (each drawn from its own number's
+    stream). A signal stops it after its trial's checkpoint, which it tells the tune's
+    process."""
+    study = open_study(study_dir, plan)
     try:
         for _ in range(share):
             run_trial(study, study.ask(), study_dir, plan, torch.device(device), threads=1)

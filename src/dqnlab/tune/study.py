@@ -15,11 +15,16 @@ from __future__ import annotations
 
 import dataclasses
 import json
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import optuna
+from optuna.distributions import BaseDistribution
+from optuna.samplers import BaseSampler, TPESampler
 from optuna.storages.journal import JournalFileBackend, JournalStorage
+from optuna.trial import FrozenTrial, TrialState
 
 from dqnlab.errors import DqnlabError
 from dqnlab.tune.space import SearchEntry
@@ -119,9 +124,66 @@ def check_study_dir(study_dir: Path, plan: TunePlan) -> bool:
     return True
 
 
-def open_study(study_dir: Path, plan: TunePlan, seed_offset: int = 0) -> optuna.Study:
+class TrialSeededSampler(BaseSampler):
+    """Optuna's TPE sampler whose random draws for trial N come from a stream seeded by
+    (seed, N) alone: a study carried on by a new process draws what the one left alone
+    would have, and never a finished trial's settings again.
+
+    One `TPESampler(seed=...)` for the whole study, as the tune had until 2026-12-05, is
+    seeded anew in every process: a tune stopped in trial 4 and carried on drew trials
+    5 to 9 with the settings of trials 0 to 4 (its random start-up draws replayed, found in
+    the Acrobot-v1 study), five of twenty trials spent on repeats. TPE itself keeps no state
+    between trials but its random stream (its model is rebuilt from the study's finished
+    trials at every draw), so a fresh one per trial loses nothing. Trials run by several
+    jobs at once have distinct numbers, so distinct streams too."""
+
+    def __init__(self, seed: int) -> None:
+        self.seed = seed
+        self._number: int | None = None
+        self._sampler = TPESampler(seed=seed)
+
+    def _for(self, trial: FrozenTrial) -> TPESampler:
+        if trial.number != self._number:
+            stream = np.random.SeedSequence([self.seed, trial.number]).generate_state(1)[0]
+            self._number, self._sampler = trial.number, TPESampler(seed=int(stream))
+        return self._sampler
+
+    def infer_relative_search_space(
+        self, study: optuna.Study, trial: FrozenTrial
+    ) -> dict[str, BaseDistribution]:
+        return self._for(trial).infer_relative_search_space(study, trial)
+
+    def sample_relative(
+        self, study: optuna.Study, trial: FrozenTrial, search_space: dict[str, BaseDistribution]
+    ) -> dict[str, Any]:
+        return self._for(trial).sample_relative(study, trial, search_space)
+
+    def sample_independent(
+        self,
+        study: optuna.Study,
+        trial: FrozenTrial,
+        param_name: str,
+        param_distribution: BaseDistribution,
+    ) -> Any:
+        return self._for(trial).sample_independent(study, trial, param_name, param_distribution)
+
+    def before_trial(self, study: optuna.Study, trial: FrozenTrial) -> None:
+        self._for(trial).before_trial(study, trial)
+
+    def after_trial(
+        self,
+        study: optuna.Study,
+        trial: FrozenTrial,
+        state: TrialState,
+        values: Sequence[float] | None,
+    ) -> None:
+        self._for(trial).after_trial(study, trial, state, values)
+
+
+def open_study(study_dir: Path, plan: TunePlan) -> optuna.Study:
     """The study in `study_dir` (created with its study.json if new), with the plan's
-    pruner and a TPE sampler seeded by the plan's seed (plus `seed_offset`, one per job)."""
+    pruner and TPE drawing each trial from a stream of the plan's seed and the trial's
+    number (`TrialSeededSampler`)."""
     if not check_study_dir(study_dir, plan):
         study_dir.mkdir(parents=True, exist_ok=True)
         path = study_path(study_dir, STUDY_FILE)
@@ -134,7 +196,7 @@ def open_study(study_dir: Path, plan: TunePlan, seed_offset: int = 0) -> optuna.
         study_name=STUDY_NAME,
         storage=storage,
         direction="maximize",
-        sampler=optuna.samplers.TPESampler(seed=plan.seed + seed_offset),
+        sampler=TrialSeededSampler(plan.seed),
         pruner=make_pruner(plan),
         load_if_exists=True,
     )
