@@ -13,7 +13,8 @@ def test_lists(tmp_path: Path) -> None:
     presets = dqnlab("presets")
     assert presets.stdout.split() == [
         "c51", "classic", "der", "double", "drq_epsilon", "dueling", "iqn", "machado",
-        "nature", "prioritized", "qrdqn", "rainbow", "seed-paper", "tuned/CartPole-v1",
+        "nature", "prioritized", "qrdqn", "rainbow", "seed-paper", "tuned/Acrobot-v1",
+        "tuned/CartPole-v1",
     ]  # fmt: skip
     nature = dqnlab("presets", "nature")
     assert "learning_rate = 0.00025" in nature.stdout
