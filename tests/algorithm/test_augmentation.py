@@ -48,6 +48,19 @@ def test_shift_by_hand(shift) -> None:
     assert torch.equal(shift(frames, torch.tensor([[1, 1], [1, 1]]), pad=1), frames)
 
 
+@pytest.mark.parametrize("dtype", [torch.bool, torch.uint8, torch.float32])
+def test_both_ways_shift_every_stored_dtype_alike(dtype: torch.dtype) -> None:
+    # `shift` is public (a user's augmentation may call it on any frames); the CPU's
+    # replicate padding has no bool kernel.
+    generator = torch.Generator().manual_seed(5)
+    frames = (torch.rand(5, 4, 10, 10, generator=generator) * 2).to(dtype)
+    offsets = torch.randint(0, 9, (5, 2), generator=generator)
+    slices = shift_by_slices(frames, offsets, pad=4)
+    assert slices.dtype == dtype
+    assert torch.equal(slices, shift_by_gather(frames, offsets, pad=4))
+    assert torch.equal(shift(frames, torch.full((5, 2), 4), pad=4), frames)
+
+
 @pytest.mark.parametrize("shift", SHIFTS)
 def test_shift_is_replicate_padding_then_a_crop(shift) -> None:
     generator = torch.Generator().manual_seed(3)

@@ -96,7 +96,10 @@ def shift_by_gather(observations: torch.Tensor, offsets: torch.Tensor, pad: int)
 
 def shift_by_slices(observations: torch.Tensor, offsets: torch.Tensor, pad: int) -> torch.Tensor:
     """`shift` as the padded batch, written once, and one slice of it copied per
-    observation (the offsets read on the host)."""
+    observation (the offsets read on the host). Boolean frames move as the bytes
+    they are stored in: `F.pad` has no replicate kernel for bool."""
+    if observations.dtype == torch.bool:
+        return shift_by_slices(observations.view(torch.uint8), offsets, pad).view(torch.bool)
     batch = observations.shape[0]
     height, width = observations.shape[-2:]
     planes = observations.reshape(batch, -1, height, width)
