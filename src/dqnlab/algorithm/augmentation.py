@@ -43,11 +43,10 @@ class Augmentation:
 class RandomShift(Augmentation):
     """Each observation moved by up to `pad` pixels on each axis, the border repeated into
     the space it leaves: the replicate-padded image (H + 2 pad, W + 2 pad) cropped back to
-    H x W at offsets (dy, dx) drawn uniformly from 0..2 pad. Computed as a gather of each
-    output pixel's source row min(max(i + dy - pad, 0), H - 1) and column likewise, in the
-    stored dtype (no padded copy). Offsets 0..2 pad inclusive as kornia's RandomCrop in
-    DrQ's code; Dopamine's JAX port draws 0..2 pad - 1 (`jax.random.randint`'s maxval is
-    exclusive), so it never shifts by +pad."""
+    H x W at offsets (dy, dx) drawn uniformly from 0..2 pad, in the stored dtype (`shift`:
+    slices of the padded batch on the CPU, gathers elsewhere). Offsets 0..2 pad inclusive
+    as kornia's RandomCrop in DrQ's code; Dopamine's JAX port draws 0..2 pad - 1
+    (`jax.random.randint`'s maxval is exclusive), so it never shifts by +pad."""
 
     def __init__(self, config: Config, pad: int = RANDOM_SHIFT_PAD) -> None:
         super().__init__(config)

@@ -139,14 +139,13 @@ class TrialSeededSampler(BaseSampler):
 
     def __init__(self, seed: int) -> None:
         self.seed = seed
-        self._number: int | None = None
-        self._sampler = TPESampler(seed=seed)
+        self._current: tuple[int, TPESampler] | None = None  # the trial drawing now, its TPE
 
     def _for(self, trial: FrozenTrial) -> TPESampler:
-        if trial.number != self._number:
+        if self._current is None or self._current[0] != trial.number:
             stream = np.random.SeedSequence([self.seed, trial.number]).generate_state(1)[0]
-            self._number, self._sampler = trial.number, TPESampler(seed=int(stream))
-        return self._sampler
+            self._current = (trial.number, TPESampler(seed=int(stream)))
+        return self._current[1]
 
     def infer_relative_search_space(
         self, study: optuna.Study, trial: FrozenTrial
