@@ -104,6 +104,12 @@ class Agent:
         # Noisy layers draw from a generator of their own (on the device), saved with the
         # agent so that a resumed run draws the same noise.
         self.noisy = has_noise(self.online)
+        self.noisy_evaluation = config.eval_noise == "sampled"
+        if self.noisy_evaluation and not self.noisy:
+            raise ConfigError(
+                "eval_noise = 'sampled' draws noise for noisy layers, and this network has "
+                "none (noisy = true gives the head some)"
+            )
         self.noise_generator = torch.Generator(device=device)
         self.noise_generator.manual_seed(seed)
         self.updates = 0
@@ -194,8 +200,9 @@ class Agent:
         )
 
     def act(self, stacked_observation: np.ndarray, epsilon: float, training: bool = False) -> int:
-        """The policy's action on one stacked observation (`choose`). In `training`, a
-        network with noisy layers acts with fresh noise; otherwise with its mean weights."""
+        """The policy's action on one stacked observation (`choose`). A network with noisy
+        layers acts with fresh noise in `training`, and otherwise as `eval_noise` says
+        (`acting_q_values`)."""
         return self.act_batch(stacked_observation[None], [epsilon], training)[0]
 
     def act_batch(
@@ -209,9 +216,7 @@ class Agent:
 
         def values(row: int) -> np.ndarray:
             if not computed:
-                noisy = training and self.noisy
-                forward = self._noisy_q_values if noisy else self.q_values
-                computed.append(forward(stacked_observations))
+                computed.append(self.acting_q_values(stacked_observations, training))
             return computed[0][row]
 
         return [
@@ -234,6 +239,14 @@ class Agent:
         with torch.inference_mode():
             inputs = torch.from_numpy(stacked_observations).to(self.device)
             return self.online(inputs).float().cpu().numpy()
+
+    def acting_q_values(self, stacked_observations: np.ndarray, training: bool) -> np.ndarray:
+        """The Q-values the policy acts on: with fresh noise in the noisy layers (one draw
+        for the whole batch) in `training`, or when evaluating with eval_noise = "sampled";
+        otherwise `q_values`, the mean weights."""
+        if self.noisy and (training or self.noisy_evaluation):
+            return self._noisy_q_values(stacked_observations)
+        return self.q_values(stacked_observations)
 
     def _noisy_q_values(self, stacked_observations: np.ndarray) -> np.ndarray:
         set_mode(self.online, training=True)

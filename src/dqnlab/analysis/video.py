@@ -460,14 +460,15 @@ def filmed_final_evaluation(
     device: torch.device,
     out_dir: Path,
     video_format: str,
+    settings: dict[str, Any] | None = None,
 ) -> tuple[Recording, EvaluatedNetwork]:
-    """`evaluate.final_evaluation`'s games of a run's network, played on one environment
-    (as with num_envs=1) and filmed into `out_dir`."""
+    """`evaluate.final_evaluation`'s games of a run's network (played as `settings` say,
+    where given), on one environment (as with num_envs=1) and filmed into `out_dir`."""
     if video_format not in VIDEO_FORMATS:
         raise DqnlabError(f"--video-format {video_format!r}: choose {', '.join(VIDEO_FORMATS)}")
     if episodes is not None and episodes <= 0:
         raise DqnlabError(f"--episodes {episodes} must be positive")
-    network = load_evaluated_agent(run_dir, checkpoint, seed, device)
+    network = load_evaluated_agent(run_dir, checkpoint, seed, device, settings)
     config = network.config
     recording = record_games(
         network.agent,

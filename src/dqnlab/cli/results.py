@@ -54,6 +54,15 @@ def evaluate(
     video_format: Annotated[
         str, typer.Option(help="auto (MP4, GIF where no encoder), mp4 or gif")
     ] = "auto",
+    set_: Annotated[
+        list[str] | None,
+        typer.Option(
+            "--set",
+            help="Play under another protocol: KEY=VALUE for eval_epsilon, eval_noise, "
+            "noop_max_frames, sticky_action_probability or final_eval_max_episode_frames "
+            "(repeatable; the result is then not saved as final_evaluation.json)",
+        ),
+    ] = None,
 ) -> None:
     """The Nature final protocol: games of at most 18,000 frames, epsilon 0.05, no-op starts.
 
@@ -64,22 +73,31 @@ def evaluate(
     are played one after another on one emulator and filmed from the raw screens (every
     emulator frame, 60 frames/s); without it they are spread over every core (other
     games, the same protocol). A run trained with logger = tensorboard+wandb also gets
-    the saved final evaluation and the videos in its W&B run's summary."""
+    the saved final evaluation and the videos in its W&B run's summary. With --set the
+    same network plays under another protocol (for example eval_noise=sampled, or
+    noop_max_frames=0), recorded in the result's "settings"."""
+    from dqnlab.config import parse_overrides
     from dqnlab.run.evaluate import final_evaluation_record, final_network
     from dqnlab.run.wandb_log import add_to_summary, final_evaluation_values, video_media
 
+    settings = parse_overrides(set_ or [])
     protocol_network = final_network(run_dir)
     checkpoint = checkpoint or protocol_network
     result, network, videos = _play_final_evaluation(
-        run_dir, checkpoint, episodes, seed, device, video=video, video_format=video_format
-    )
+        run_dir, checkpoint, episodes, seed, device, video=video, video_format=video_format,
+        settings=settings,
+    )  # fmt: skip
     config = network.config
     typer.echo(
         f"{config.env}: {result.mean:.2f} ± {result.std:.2f} over {len(result.scores)} games "
         f"({network.path}, {result.frames} frames at {result.frames_per_second:.0f} frames/s)"
     )
-    record = final_evaluation_record(result, config, network.path, network.step, seed)
-    written = _save_final_evaluation(run_dir, record) if checkpoint == protocol_network else False
+    record = final_evaluation_record(result, config, network.path, network.step, seed, settings)
+    written = False
+    if settings:
+        typer.echo("dqnlab: not saved as the run's final evaluation: --set changed its protocol")
+    elif checkpoint == protocol_network:
+        written = _save_final_evaluation(run_dir, record)
     if checkpoint in ("best", "last"):  # the run's own network: to its W&B run, if it has one
         values = final_evaluation_values(record) if written else {}
         if add_to_summary(run_dir, values, video_media(checkpoint, videos)):
@@ -97,21 +115,24 @@ def _play_final_evaluation(
     *,
     video: Path | None,
     video_format: str,
+    settings: dict[str, Any],
 ) -> tuple[EvaluationResult, EvaluatedNetwork, list[Path]]:
-    """The final evaluation's games of `checkpoint`, filmed into the directory `video` unless
-    it is None: the result, the network and the videos (each one's path printed)."""
+    """The final evaluation's games of `checkpoint` (played as `settings` say), filmed into
+    the directory `video` unless it is None: the result, the network and the videos (each
+    one's path printed)."""
     if video is None:
         from dqnlab.run.evaluate import final_evaluation
 
         result, network = final_evaluation(
-            run_dir, checkpoint, episodes, seed, resolve_device(device)
+            run_dir, checkpoint, episodes, seed, resolve_device(device), settings=settings
         )
         return result, network, []
     from dqnlab.analysis.video import filmed_final_evaluation
 
     recording, network = filmed_final_evaluation(
-        run_dir, checkpoint, episodes, seed, resolve_device(device), video, video_format
-    )
+        run_dir, checkpoint, episodes, seed, resolve_device(device), video, video_format,
+        settings,
+    )  # fmt: skip
     for file in recording.paths:
         typer.echo(f"dqnlab: wrote {file}")
     if recording.note:

@@ -10,6 +10,7 @@ every name: a *frame* is one raw emulator frame, a *step* is one agent decision.
 """
 
 from dqnlab.config.files import (
+    EVALUATION_SETTINGS,
     config_from_dict,
     config_to_toml,
     load_preset,
@@ -24,6 +25,7 @@ from dqnlab.config.files import (
     tuned_envs,
     tuned_preset,
     with_env_arguments,
+    with_evaluation_settings,
 )
 from dqnlab.config.fingerprint import (
     ADDED_WITH_DEFAULTS,
@@ -42,6 +44,7 @@ __all__ = [
     "ATARI100K_PROTOCOL",
     "CHOICES",
     "DEFAULT_EVALUATION_SEED",
+    "EVALUATION_SETTINGS",
     "FIELD_NAMES",
     "RESUMABLE_CHANGES",
     "USER_PARTS",
@@ -65,4 +68,5 @@ __all__ = [
     "tuned_envs",
     "tuned_preset",
     "with_env_arguments",
+    "with_evaluation_settings",
 ]

@@ -262,6 +262,30 @@ def config_from_dict(values: dict[str, Any]) -> Config:
     return Config(**{name: _coerce(name, value) for name, value in values.items()})
 
 
+# The settings that change only how a trained network is played, not the network: what
+# `dqnlab evaluate --set` may change (another protocol for the same network).
+EVALUATION_SETTINGS = (
+    "eval_epsilon", "eval_noise", "noop_max_frames", "sticky_action_probability",
+    "final_eval_max_episode_frames",
+)  # fmt: skip
+
+
+def with_evaluation_settings(config: Config, overrides: dict[str, Any]) -> Config:
+    """`config` with `overrides` of `EVALUATION_SETTINGS` (from `dqnlab evaluate --set`);
+    any other setting is refused, since it would change the network or its training."""
+    for name in overrides:
+        if name not in EVALUATION_SETTINGS:
+            raise ConfigError(
+                f"--set {name}: evaluate changes only how the network plays "
+                f"({', '.join(EVALUATION_SETTINGS)})"
+            )
+    if not overrides:
+        return config
+    return dataclasses.replace(
+        config, **{name: _coerce(name, value) for name, value in overrides.items()}
+    )
+
+
 def with_env_arguments(
     config: Config, env_kwargs: dict[str, Any], env_wrappers: typing.Sequence[str]
 ) -> Config:

@@ -30,7 +30,7 @@ ADDED_WITH_DEFAULTS = (
     "replay_sampling", "priority_exponent", "priority_epsilon", "importance_exponent_start",
     "max_gradient_norm", "policy", "env_kwargs", "env_wrappers", "observation_images",
     "update_graph", "num_envs", "concurrency", "actor_refresh_updates", "periodic_eval",
-    "augmentation", "head", "parts", "deterministic", "epsilon_decay_fraction",
+    "augmentation", "head", "parts", "deterministic", "epsilon_decay_fraction", "eval_noise",
 )  # fmt: skip
 
 

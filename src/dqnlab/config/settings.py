@@ -195,6 +195,12 @@ class Config:
     )  # fmt: skip
     # Evaluation.
     eval_epsilon: float = _setting(0.05, "Epsilon while evaluating")
+    eval_noise: str = _setting(
+        "mean",
+        "Noisy layers while evaluating: mean (their mean weights: Fortunato et al. 2018, "
+        "Dopamine, Kaixhin's Rainbow) or sampled (fresh noise for every action, drawn as in "
+        "training: dqn_zoo's Rainbow); sampled needs a network with noisy layers",
+    )
     eval_period_steps: int = _setting(
         250_000, "Training steps between periodic evaluations (0: none; the best network is "
         "then the last)"

@@ -34,6 +34,7 @@ CHOICES: dict[str, tuple[str, ...]] = {
     "concurrency": ("none", "actor-learner"),
     "periodic_eval": ("inline", "background"),
     "final_eval_network": ("best", "last"),
+    "eval_noise": ("mean", "sampled"),
 }
 # Settings that take one of `CHOICES` or the `module:Name` of a user's own part.
 USER_PARTS: dict[str, tuple[str, ...]] = {

@@ -27,11 +27,15 @@ def final_evaluation_record(
     checkpoint_path: Path,
     checkpoint_step: int | None,
     seed: int,
+    settings: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
     """The result of a final evaluation as `dqnlab evaluate --json` and
     `final_evaluation.json` hold it (std over games with ddof 0, as numpy's default).
     `checkpoint_step`: the training step of the network played, as its file said when
-    it was loaded (a running training may have replaced the file since)."""
+    it was loaded (a running training may have replaced the file since). `settings`: the
+    evaluation settings changed from the run's own (`dqnlab evaluate --set`), recorded
+    with their values as played."""
+    changed = {name: getattr(config, name) for name in settings or {}}
     return {
         "env": config.env,
         "checkpoint": str(checkpoint_path),
@@ -45,6 +49,7 @@ def final_evaluation_record(
         "std": result.std,
         "frames": result.frames,
         "frames_per_second": result.frames_per_second,
+        **({"settings": changed} if changed else {}),
     }
 
 
@@ -60,11 +65,16 @@ class EvaluatedNetwork:
 
 
 def load_evaluated_agent(
-    run_dir: Path, checkpoint: str, seed: int, device: torch.device
+    run_dir: Path,
+    checkpoint: str,
+    seed: int,
+    device: torch.device,
+    settings: dict[str, Any] | None = None,
 ) -> EvaluatedNetwork:
     """The network `final_evaluation` plays: the agent built from the network file
-    ("best", "last" or a file path), and the seed of the evaluation's environments (child 0
-    of `seed`; child 1 seeds the agent)."""
+    ("best", "last" or a file path), playing as its run's configuration says unless
+    `settings` change that (`with_evaluation_settings`), and the seed of the evaluation's
+    environments (child 0 of `seed`; child 1 seeds the agent)."""
     if checkpoint in ("best", "last"):
         rundir.load_run_config(run_dir)  # a clear error if RUN_DIR is not a run
         path = _run_network_path(run_dir, checkpoint)
@@ -74,7 +84,7 @@ def load_evaluated_agent(
         payload = exported.load_network(path, map_location=device)
     else:
         payload = rundir.load_network(path, map_location=device)
-    agent, config, env_seed = rundir.agent_from_network(payload, path, seed, device)
+    agent, config, env_seed = rundir.agent_from_network(payload, path, seed, device, settings)
     message = unbounded_games_warning(config)
     if message is not None:
         warnings.warn(message, stacklevel=2)
@@ -123,6 +133,7 @@ def final_evaluation(
     device: torch.device,
     *,
     num_envs: int | None = None,
+    settings: dict[str, Any] | None = None,
 ) -> tuple[EvaluationResult, EvaluatedNetwork]:
     """Nature's final protocol on a run's network: whole games of at most
     `final_eval_max_episode_frames`, at `eval_epsilon`, with random no-op starts.
@@ -130,13 +141,14 @@ def final_evaluation(
     The games are played by `play_games` on `num_envs` environments in lockstep (None:
     `default_num_envs`), stepped on every core. The network is built from the
     configuration saved in the checkpoint itself, so a checkpoint file from another run
-    evaluates with its own settings.
+    evaluates with its own settings, except those `settings` change (another protocol for
+    the same network: `with_evaluation_settings`).
     """
     if episodes is not None and episodes <= 0:
         raise DqnlabError(f"--episodes {episodes} must be positive")
     if num_envs is not None and num_envs <= 0:
         raise DqnlabError(f"num_envs {num_envs} must be positive")
-    network = load_evaluated_agent(run_dir, checkpoint, seed, device)
+    network = load_evaluated_agent(run_dir, checkpoint, seed, device, settings)
     config = network.config
     count = episodes if episodes is not None else config.final_eval_episodes
     result = play_games(

@@ -59,7 +59,7 @@ class _ActingBatch:
         else:
             inputs = self.inputs[: len(self.active)]
             np.take(histories, self.active_rows, axis=0, out=inputs, mode="clip")
-        q_values = agent.q_values(inputs)
+        q_values = agent.acting_q_values(inputs, training=False)
         for row, i in enumerate(self.active):
             actions[i] = agent.choose(epsilon, q_values[row])
 

@@ -55,6 +55,7 @@ from dqnlab.config import (
     config_to_toml,
     derive_seeds,
     differing_settings,
+    with_evaluation_settings,
 )
 from dqnlab.envs.spaces import ObservationLayout
 from dqnlab.errors import DqnlabError
@@ -332,13 +333,17 @@ def trained_to_budget(run_dir: Path, total_steps: int) -> bool:
 
 
 def agent_from_network(
-    payload: dict[str, Any], path: Path, seed: int, device: torch.device
+    payload: dict[str, Any],
+    path: Path,
+    seed: int,
+    device: torch.device,
+    settings: dict[str, Any] | None = None,
 ) -> tuple[Agent, Config, int]:
     """An agent with the network saved in `payload` (read from `path`), built from the
-    configuration, input shape and action names stored beside it, its epsilon-greedy
-    draws seeded with child 1 of `seed`; and child 0, which seeds the environments it
-    plays."""
-    config = config_from_dict(payload["config"])
+    configuration, input shape and action names stored beside it (with `settings`, how it
+    plays: `with_evaluation_settings`), its epsilon-greedy draws seeded with child 1 of
+    `seed`; and child 0, which seeds the environments it plays."""
+    config = with_evaluation_settings(config_from_dict(payload["config"]), settings or {})
     env_seed, agent_seed = derive_seeds(seed, 2)
     try:
         input_shape = tuple(int(n) for n in payload["input_shape"])
