@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import multiprocessing
+
 import numpy as np
 
 from dqnlab.envs.pool import (
@@ -12,6 +14,7 @@ from dqnlab.envs.pool import (
     EnvGroup,
     EnvWorkers,
     Lockstep,
+    _worker,
 )
 
 CAP = 12  # CartPole steps per game at most (its frames are steps)
@@ -69,3 +72,16 @@ def test_worker_processes_step_as_the_player_would(cartpole) -> None:
     with EnvWorkers(cartpole, CAP, seeds, games, [range(3)], layout, workers=2) as workers:
         assert _statuses(workers, workers.lockstep, 30) == expected
         assert np.array_equal(workers.lockstep.observations, expected_observations)
+
+
+def test_a_worker_whose_player_is_gone_ends_quietly(cartpole) -> None:
+    # A killed `dqnlab evaluate` leaves its workers a closed pipe: they return, without
+    # the traceback of a BrokenPipeError on the terminal.
+    layout = Lockstep.layout(1, (4,), np.dtype(np.float32))
+    arguments = {
+        "config": cartpole, "max_episode_frames": CAP, "env_ids": [0], "seeds": [1],
+        "games": [1], "batches": [range(1)],
+    }  # fmt: skip
+    player_end, worker_end = multiprocessing.Pipe()
+    player_end.close()
+    _worker(worker_end, arguments, Lockstep.buffers(layout), layout)  # returns, no raise

@@ -171,7 +171,8 @@ def _worker(
     except Exception:  # noqa: BLE001 - sent to the player, which raises it
         connection.send_bytes(traceback.format_exc().encode())
         return
-    with group:
+    with group, contextlib.suppress(BrokenPipeError, ConnectionResetError, EOFError):
+        # Suppressed: the player is gone (killed), so there is no one to answer.
         connection.send_bytes(b"")
         while True:
             command = connection.recv_bytes()
