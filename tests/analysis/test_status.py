@@ -20,9 +20,11 @@ from dqnlab.analysis.status import (
     COLUMNS,
     RunStatus,
     collect_status,
+    estimate_seconds_left,
     format_status_table,
     live_table,
     record_attempt,
+    run_status,
     status_json,
 )
 from dqnlab.config import resolve_config
@@ -81,6 +83,26 @@ def test_status_of_a_sweep_in_each_state(tmp_path: Path) -> None:
                      "settings": {"discount": 0.9}, "state": "done", "step": 1000,
                      "total_steps": 1000, "last_eval_mean": 12.5, "attempts": 1}  # fmt: skip
     assert [r["attempts"] for r in record["runs"]] == [1, 1, 2, 1, 1, 0]
+
+
+def test_the_time_left_counts_learning_speed_only_and_every_running_run(tmp_path: Path) -> None:
+    run = tmp_path / "run"
+    run.mkdir()
+    config = resolve_config(
+        "classic", env="CartPole-v1", total_steps=3000, replay_start_steps=400
+    )
+    rundir.write_run_config(run, config)
+    # The replay start at 1,000 steps a second (no updates), then learning at 100.
+    seconds = {step: step / 1000 for step in range(100, 401, 100)}
+    seconds |= {step: 0.4 + (step - 400) / 100 for step in range(500, 1001, 100)}
+    rows = "".join(f"{s},{4 * s},{s // 100},10,100,0.5,{t}\n" for s, t in seconds.items())
+    rundir.episodes_path(run).write_text(EPISODES + rows)
+    RunLease(run).acquire()
+    status = run_status(run)
+    assert status.state == "running" and status.steps_per_second == 100
+    # A second run, just started: no speed yet, but it runs beside the first, at its pace.
+    starting = dataclasses.replace(status, name="other", step=0, steps_per_second=None)
+    assert estimate_seconds_left([status, starting]) == (2000 + 3000) / (2 * 100)
 
 
 def test_a_run_whose_process_lives_but_renews_no_lease_is_paused_not_retrying(

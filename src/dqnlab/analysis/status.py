@@ -75,7 +75,7 @@ class RunStatus:
     last_eval_mean: float | None = None
     attempts: int = 0
     frames_per_second: float | None = None  # of a running run
-    steps_per_second: float | None = None
+    steps_per_second: float | None = None  # of a running run once it learns (the time left)
     node: str | None = None  # host of the latest attempt
     started_at: float | None = None  # wall-clock start of the latest attempt
     log_tail: str = field(default="", repr=False)
@@ -149,9 +149,11 @@ def run_status(run_dir: Path, planned: dict[str, Any] | None = None) -> RunStatu
     """The state of one run, from its files; `planned` (a run of sweep.json) fills in a
     run that has not started."""
     planned = planned or {}
+    learning_from = 0  # the step learning starts at: the replay start plays much faster
     if rundir.is_run_dir(run_dir):
         config = rundir.load_run_config(run_dir)
         env, seed, total = config.env, config.seed, config.total_steps
+        learning_from = config.replay_start_steps
     else:
         env, seed, total = planned["env"], planned["seed"], planned["total_steps"]
     status = RunStatus(
@@ -179,7 +181,8 @@ def run_status(run_dir: Path, planned: dict[str, Any] | None = None) -> RunStatu
     if lease_is_live(run_dir):
         status.state = "running"
         status.frames_per_second = _rate(episodes, "frames")
-        status.steps_per_second = _rate(episodes, "step")
+        learning = [row for row in episodes if (_number(row.get("step")) or 0) >= learning_from]
+        status.steps_per_second = _rate(learning, "step")
     elif last_end is not None and last_end.get("outcome") in ("done", "failed", "stopped"):
         status.state = last_end["outcome"]
     elif rundir.trained_to_budget(run_dir, total):
@@ -371,13 +374,15 @@ def sweep_progress(statuses: list[RunStatus]) -> SweepProgress:
 
 
 def estimate_seconds_left(statuses: list[RunStatus]) -> float | None:
-    """Steps left over the running runs' steps per second, assuming as many runs keep
-    running at that speed."""
-    rates = [s.steps_per_second for s in statuses if s.state == "running" and s.steps_per_second]
+    """Steps left over the sweep's steps per second: as many runs as are running now, each
+    at the mean learning speed of those that have one (`steps_per_second`, measured once
+    learning runs: a run still in its replay start or its first games has none yet)."""
+    running = [s for s in statuses if s.state == "running"]
+    rates = [s.steps_per_second for s in running if s.steps_per_second]
     if not rates:
         return None
     left = sum(s.total_steps - s.step for s in statuses if s.state not in ("done", "failed"))
-    return left / sum(rates)
+    return left / (sum(rates) / len(rates) * len(running))
 
 
 def summary_text(progress: SweepProgress) -> str:
