@@ -88,9 +88,7 @@ def test_status_of_a_sweep_in_each_state(tmp_path: Path) -> None:
 def test_the_time_left_counts_learning_speed_only_and_every_running_run(tmp_path: Path) -> None:
     run = tmp_path / "run"
     run.mkdir()
-    config = resolve_config(
-        "classic", env="CartPole-v1", total_steps=3000, replay_start_steps=400
-    )
+    config = resolve_config("classic", env="CartPole-v1", total_steps=3000, replay_start_steps=400)
     rundir.write_run_config(run, config)
     # The replay start at 1,000 steps a second (no updates), then learning at 100.
     seconds = {step: step / 1000 for step in range(100, 401, 100)}
