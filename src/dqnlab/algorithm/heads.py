@@ -276,7 +276,7 @@ class QHead(nn.Module):
     def _stream(self, in_features: int, hidden_width: int | None, outputs: int) -> nn.Sequential:
         layers: list[nn.Module] = []
         if hidden_width is not None:
-            layers += [self._linear(in_features, hidden_width), nn.ReLU()]
+            layers += [self._linear(in_features, hidden_width), nn.ReLU(inplace=True)]
             in_features = hidden_width
         layers.append(self._linear(in_features, outputs))
         return nn.Sequential(*layers)

@@ -36,7 +36,7 @@ class NatureCNN(nn.Module):
         flat = _flat_size(self.features, channels, height, width)
         self.head = nn.Sequential(
             nn.Linear(flat, NATURE_HIDDEN_WIDTH),
-            nn.ReLU(),
+            nn.ReLU(inplace=True),
             nn.Linear(NATURE_HIDDEN_WIDTH, num_actions),
         )
         # Channels-last convolutions are about a third faster on CPU (oneDNN), same values.
@@ -126,7 +126,7 @@ class DataEfficientCNN(nn.Module):
         self.torso = DataEfficientTorso(input_shape)
         self.head = nn.Sequential(
             nn.Linear(self.torso.output_size, DATA_EFFICIENT_HIDDEN_WIDTH),
-            nn.ReLU(),
+            nn.ReLU(inplace=True),
             nn.Linear(DATA_EFFICIENT_HIDDEN_WIDTH, num_actions),
         )
 
@@ -142,9 +142,9 @@ class DataEfficientTorso(nn.Module):
         channels, height, width = _image_planes(input_shape, DATA_EFFICIENT_MIN_SIDE)
         self.features = nn.Sequential(
             nn.Conv2d(channels, 32, kernel_size=5, stride=5),
-            nn.ReLU(),
+            nn.ReLU(inplace=True),
             nn.Conv2d(32, 64, kernel_size=5, stride=5),
-            nn.ReLU(),
+            nn.ReLU(inplace=True),
             nn.Flatten(),
         )
         self.output_size = _flat_size(self.features, channels, height, width)

@@ -110,7 +110,7 @@ def _hidden_layers(inputs: int, widths: Sequence[int]) -> tuple[list[nn.Module],
     """Linear layers of `widths` units with ReLU, and the width of the last."""
     layers: list[nn.Module] = []
     for width in widths:
-        layers += [nn.Linear(inputs, width), nn.ReLU()]
+        layers += [nn.Linear(inputs, width), nn.ReLU(inplace=True)]
         inputs = width
     return layers, inputs
 

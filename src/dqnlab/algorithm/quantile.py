@@ -176,7 +176,7 @@ class ImplicitQuantileHead(nn.Module, RandomPart):
         layers: list[nn.Module] = []
         width = in_features
         if hidden_width is not None:
-            layers += [nn.Linear(in_features, hidden_width), nn.ReLU()]
+            layers += [nn.Linear(in_features, hidden_width), nn.ReLU(inplace=True)]
             width = hidden_width
         self.outputs = nn.Sequential(*layers, nn.Linear(width, num_actions))
         # pi i for i = 1..n: dqn_zoo (networks.iqn_atari_network) and Dopamine
