@@ -210,8 +210,9 @@ class Agent:
     ) -> list[int]:
         """The policy's actions on a batch of stacked observations (one per environment,
         `num_envs`), chosen in order with the agent's generator: the first choice that
-        needs Q-values computes them for the whole batch in one forward pass (with fresh
-        noise in `training`, as `act`), and the others reuse it. One observation: `act`."""
+        needs Q-values computes them for the whole batch in one forward pass
+        (`acting_q_values`: one noise draw for the batch where noise applies), and the
+        others reuse it. One observation: `act`."""
         computed: list[np.ndarray] = []
 
         def values(row: int) -> np.ndarray:
