@@ -38,7 +38,8 @@ def nature_convolutions(channels: int) -> nn.Sequential:
 
     Every ReLU of dqnlab's networks works in place, on the output of the layer before it
     (which nothing else reads): the same values and gradients, one activation's allocation
-    and pass fewer (a Nature update about 4% faster on two threads, a dueling one 5%)."""
+    and pass fewer (a Nature update about 4% faster on two threads, a dueling one 5%). A
+    forward hook that keeps a layer's output must clone it: the ReLU after it overwrites it."""
     return nn.Sequential(
         nn.Conv2d(channels, 32, kernel_size=8, stride=4),
         nn.ReLU(inplace=True),
