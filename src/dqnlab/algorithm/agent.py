@@ -22,7 +22,7 @@ from torch import nn
 
 from dqnlab.algorithm.augmentation import build_augmentation
 from dqnlab.algorithm.encoders import torch_dtype
-from dqnlab.algorithm.heads import has_noise, sample_noise
+from dqnlab.algorithm.heads import evaluates_with_noise, has_noise, sample_noise
 from dqnlab.algorithm.losses import TDLoss, build_loss
 from dqnlab.algorithm.minibatch import Batch, Minibatch, Transitions
 from dqnlab.algorithm.networks import (
@@ -104,12 +104,7 @@ class Agent:
         # Noisy layers draw from a generator of their own (on the device), saved with the
         # agent so that a resumed run draws the same noise.
         self.noisy = has_noise(self.online)
-        self.noisy_evaluation = config.eval_noise == "sampled"
-        if self.noisy_evaluation and not self.noisy:
-            raise ConfigError(
-                "eval_noise = 'sampled' draws noise for noisy layers, and this network has "
-                "none (noisy = true gives the head some)"
-            )
+        self.noisy_evaluation = evaluates_with_noise(config, self.online)
         self.noise_generator = torch.Generator(device=device)
         self.noise_generator.manual_seed(seed)
         self.updates = 0

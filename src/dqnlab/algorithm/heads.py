@@ -194,6 +194,18 @@ def noisy_weight(mu: torch.Tensor, sigma: torch.Tensor, epsilon: torch.Tensor) -
     return weight
 
 
+def evaluates_with_noise(config: Config, network: nn.Module) -> bool:
+    """Whether `network` plays its evaluations with fresh noise (eval_noise = "sampled", as
+    dqn_zoo's Rainbow evaluates) rather than on its mean weights; "sampled" needs noisy
+    layers in it."""
+    if config.eval_noise == "sampled" and not has_noise(network):
+        raise ConfigError(
+            "eval_noise = 'sampled' draws noise for noisy layers, and this network has "
+            "none (noisy = true gives the head some)"
+        )
+    return config.eval_noise == "sampled"
+
+
 def sample_noise(network: nn.Module, generator: torch.Generator, *, weights: bool = True) -> None:
     """Resample the noise of every `NoisyLinear` in `network`, in module order, from
     `generator` (on the network's device). Allocates nothing larger than the noise vectors:

@@ -28,6 +28,17 @@ BASELINE_HELP = (
 )
 
 
+EvaluationSettings = Annotated[
+    list[str] | None,
+    typer.Option(
+        "--set",
+        help="Play under another protocol: KEY=VALUE for eval_epsilon, eval_noise, "
+        "noop_max_frames, sticky_action_probability or final_eval_max_episode_frames "
+        "(repeatable; the result is then not saved as final_evaluation.json)",
+    ),
+]
+
+
 def evaluate(
     run_dir: RunDir,
     checkpoint: Annotated[
@@ -54,15 +65,7 @@ def evaluate(
     video_format: Annotated[
         str, typer.Option(help="auto (MP4, GIF where no encoder), mp4 or gif")
     ] = "auto",
-    set_: Annotated[
-        list[str] | None,
-        typer.Option(
-            "--set",
-            help="Play under another protocol: KEY=VALUE for eval_epsilon, eval_noise, "
-            "noop_max_frames, sticky_action_probability or final_eval_max_episode_frames "
-            "(repeatable; the result is then not saved as final_evaluation.json)",
-        ),
-    ] = None,
+    set_: EvaluationSettings = None,
 ) -> None:
     """The Nature final protocol: games of at most 18,000 frames, epsilon 0.05, no-op starts.
 
@@ -78,7 +81,6 @@ def evaluate(
     noop_max_frames=0), recorded in the result's "settings"."""
     from dqnlab.config import parse_overrides
     from dqnlab.run.evaluate import final_evaluation_record, final_network
-    from dqnlab.run.wandb_log import add_to_summary, final_evaluation_values, video_media
 
     settings = parse_overrides(set_ or [])
     protocol_network = final_network(run_dir)
@@ -93,8 +95,25 @@ def evaluate(
         f"({network.path}, {result.frames} frames at {result.frames_per_second:.0f} frames/s)"
     )
     record = final_evaluation_record(result, config, network.path, network.step, seed, settings)
+    _keep_record(run_dir, record, checkpoint, protocol_network, videos)
+    if json_path:
+        write_json(json_path, record)
+
+
+def _keep_record(
+    run_dir: Path,
+    record: dict[str, Any],
+    checkpoint: str,
+    protocol_network: str,
+    videos: list[Path],
+) -> None:
+    """Save a final evaluation of the run's protocol network as its final_evaluation.json
+    (not one played under other settings), and send it and the videos to the run's W&B
+    summary where the network is the run's own."""
+    from dqnlab.run.wandb_log import add_to_summary, final_evaluation_values, video_media
+
     written = False
-    if settings:
+    if "settings" in record:
         typer.echo("dqnlab: not saved as the run's final evaluation: --set changed its protocol")
     elif checkpoint == protocol_network:
         written = _save_final_evaluation(run_dir, record)
@@ -102,8 +121,6 @@ def evaluate(
         values = final_evaluation_values(record) if written else {}
         if add_to_summary(run_dir, values, video_media(checkpoint, videos)):
             typer.echo("dqnlab: sent to the run's W&B summary")
-    if json_path:
-        write_json(json_path, record)
 
 
 def _play_final_evaluation(
