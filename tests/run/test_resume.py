@@ -41,9 +41,11 @@ CARTPOLE = [
     "--no-progress", "--device", "cpu", "--preset", "classic",  # not tuned/CartPole-v1
 ]  # fmt: skip
 # Every part of the family at once, as Rainbow composes them: priorities, the noise
-# generator and n-step windows must come back exactly too.
+# generator and n-step windows must come back exactly too; its periodic evaluations draw
+# their noise from the same generator (eval_noise = "sampled", as dqn_zoo evaluates).
 RAINBOW_CARTPOLE = [
     *CARTPOLE, "--set", "target=double", "--set", "dueling=true", "--set", "noisy=true",
+    "--set", "eval_noise=sampled",
     "--set", "distributional=c51", "--set", "n_step=3", "--set", "replay_sampling=prioritized",
     "--set", "optimizer=adam", "--set", "learning_rate=0.0005", "--set", "loss_reduction=mean",
     "--set", "max_gradient_norm=10", "--set", "epsilon_start=0", "--set", "epsilon_end=0",
