@@ -2,10 +2,14 @@
 
 Its observations are stored as `envs/spaces.py` lays them out: uint8 images (channels
 first) and float vectors as frames of their own, anything else packed into rows of bytes.
+
+A run's checkpoint keeps such an environment pickled where pickling keeps its state, else
+its current episode as a replay (`EpisodeReplay`).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import pickle
 import warnings
 from collections.abc import Callable
@@ -37,6 +41,9 @@ class GymnasiumEnv:
                 f"environment's is {env.action_space}"
             )
         self.env = env
+        self._name = name
+        self._pickles_state = pickles_its_state(env)
+        self._episode = EpisodeReplay()
         try:
             self.observation_layout: ObservationLayout = observation_layout(
                 env.observation_space, observation_images
@@ -63,19 +70,24 @@ class GymnasiumEnv:
         self.frame_callback: Callable[[Any], None] | None = None
 
     def state_dict(self) -> dict[str, Any]:
-        """The whole environment pickled (Gymnasium envs such as CartPole pickle with their
-        RNG); an environment that cannot be pickled resumes with a new episode.
+        """The whole environment pickled where pickling keeps its state (Gymnasium envs
+        such as CartPole pickle with their RNG); else the current episode as its replay
+        (`EpisodeReplay`).
 
         Gymnasium has no other general way to save an environment's state, so resuming
         unpickles it, which can run any code the file names: docs/resuming.md
         tells users to resume only run directories they trust as they trust code.
         """
-        try:
-            env_bytes: bytes | None = pickle.dumps(self.env)
-        except Exception:  # noqa: BLE001 - any unpicklable environment
-            env_bytes = None
+        env_bytes: bytes | None = None
+        if self._pickles_state:
+            try:
+                env_bytes = pickle.dumps(self.env)
+            except Exception:  # noqa: BLE001 - any unpicklable environment
+                env_bytes = None
+        episode = None if env_bytes is not None else self._episode.state_dict(self._observation)
         return {
             "env": env_bytes,
+            "episode": episode,
             "seed": self._seed,
             "episode_steps": self._episode_steps,
             "frames": self.frames,
@@ -84,21 +96,45 @@ class GymnasiumEnv:
         }
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
-        if state["env"] is None:
-            warnings.warn(
-                "this environment cannot be pickled: the resumed run starts a new episode",
-                stacklevel=2,
-            )
-            self.game_over = True
-        else:
-            self.env.close()
-            # Trusts the run directory as code: see state_dict.
-            self.env = pickle.loads(state["env"])
-            self.game_over = bool(state["game_over"])
         self._seed = state["seed"]
         self._episode_steps = int(state["episode_steps"])
         self.frames = int(state["frames"])
         self.truncated = bool(state["truncated"])
+        self.game_over = bool(state["game_over"])
+        if state["env"] is not None and self._pickles_state:
+            self.env.close()
+            # Trusts the run directory as code: see state_dict.
+            self.env = pickle.loads(state["env"])
+        elif state.get("episode") is not None:  # absent from older checkpoints
+            if not self._replay_episode(state["episode"]):
+                warnings.warn(
+                    f"{self._name}: its episode replayed from the checkpoint does not reach "
+                    "the observation saved (the environment draws from something other than "
+                    "its np_random): the resumed run starts a new episode",
+                    stacklevel=2,
+                )
+                self.game_over = True
+        else:  # an older checkpoint: unpicklable, or pickled without its state (EzPickle)
+            warnings.warn(
+                f"{self._name}: the checkpoint keeps no state of this environment (it cannot "
+                "be pickled, or its pickle keeps only its constructor's arguments): the "
+                "resumed run starts a new episode",
+                stacklevel=2,
+            )
+            self.game_over = True
+
+    def _replay_episode(self, state: dict[str, Any]) -> bool:
+        """The checkpoint's episode played again on this (newly made) environment, without
+        frames for videos; whether it reached the observation saved."""
+        self._episode = EpisodeReplay.from_state_dict(state)
+        if not self._episode.started:
+            return True
+        self._episode.restore_generator(self.env)
+        observation, _ = self.env.reset(seed=self._episode.seed)
+        for action in self._episode.actions:
+            observation, *_ = self.env.step(action)
+        reached = self._convert(observation)
+        return bool(reached.tobytes() == state["observation"].numpy().tobytes())
 
     @property
     def game_ended(self) -> bool:
@@ -116,6 +152,7 @@ class GymnasiumEnv:
 
     def reset(self, new_game: bool = False) -> np.ndarray:
         """A new episode (every Gymnasium reset is a new game)."""
+        self._episode.start(self.env, self._seed)
         observation, _ = self.env.reset(seed=self._seed)
         self._seed = None  # seed once; later resets continue the seeded stream
         self._episode_steps = 0
@@ -126,7 +163,9 @@ class GymnasiumEnv:
         return self._convert(observation)
 
     def step(self, action: int) -> tuple[np.ndarray, float, bool, bool]:
-        observation, reward, terminated, truncated, _ = self.env.step(action + self._action_start)
+        action = int(action) + self._action_start
+        self._episode.actions.append(action)
+        observation, reward, terminated, truncated, _ = self.env.step(action)
         self._episode_steps += 1
         self.frames += 1
         if self.max_episode_steps and self._episode_steps >= self.max_episode_steps:
@@ -148,3 +187,90 @@ class GymnasiumEnv:
 
     def close(self) -> None:
         self.env.close()
+
+
+def pickles_its_state(env: gym.Env) -> bool:
+    """Whether pickling `env` keeps its state: no layer of it (wrappers and the environment)
+    pickles otherwise than by its attributes. Gymnasium's `EzPickle` (LunarLander, CarRacing,
+    the MuJoCo environments) keeps the constructor's arguments only: unpickled, such an
+    environment is a new one, not yet reset."""
+    layer: Any = env
+    while True:
+        kind = type(layer)
+        if hasattr(kind, "__setstate__") or any(
+            getattr(kind, name) is not getattr(object, name)
+            for name in ("__getstate__", "__reduce__", "__reduce_ex__")
+        ):
+            return False
+        if not isinstance(layer, gym.Wrapper):
+            return True
+        layer = layer.env
+
+
+@dataclasses.dataclass
+class EpisodeReplay:
+    """The current episode of an environment, as far as replaying it needs: the state of the
+    environment's `np_random` before the episode's reset (and the seed it was reset with),
+    and every action since. Played again on a newly made environment, they reach the same
+    state wherever the environment's randomness is its `np_random` (Box2D's and MuJoCo's
+    physics are deterministic); the observation reached is checked against the one saved.
+    Kept for every environment (an action appended per step), saved for those whose
+    pickle does not keep their state."""
+
+    started: bool = False
+    seed: int | None = None
+    generator: dict[str, Any] | None = None  # np.random.BitGenerator.state
+    generator_seed: int | None = None  # gymnasium's np_random_seed
+    actions: list[int] = dataclasses.field(default_factory=list)
+
+    def start(self, env: gym.Env, seed: int | None) -> None:
+        """A new episode: `env` about to be reset with `seed`."""
+        unwrapped = env.unwrapped
+        generator = getattr(unwrapped, "_np_random", None)  # np_random would make one
+        self.started = True
+        self.seed = seed
+        self.generator = None if generator is None else _plain(generator.bit_generator.state)
+        self.generator_seed = getattr(unwrapped, "_np_random_seed", None)
+        self.actions = []
+
+    def restore_generator(self, env: gym.Env) -> None:
+        """`env`'s `np_random` as it was before the episode's reset."""
+        if self.generator is None:
+            return
+        kind = getattr(np.random, str(self.generator["bit_generator"]), None)
+        if not (isinstance(kind, type) and issubclass(kind, np.random.BitGenerator)):
+            raise EnvError(f"unknown random generator in the checkpoint: {kind!r}")
+        bit_generator = kind()
+        bit_generator.state = self.generator
+        env.unwrapped.np_random = np.random.Generator(bit_generator)
+        env.unwrapped._np_random_seed = self.generator_seed  # the setter made it -1
+
+    def state_dict(self, observation: np.ndarray) -> dict[str, Any]:
+        """The episode and the observation it reached, as a checkpoint keeps them (tensors
+        and plain values)."""
+        import torch  # kept out of the environment workers' imports
+
+        state = dataclasses.asdict(self)
+        state["actions"] = torch.tensor(self.actions, dtype=torch.int64)
+        state["observation"] = torch.from_numpy(observation.copy())
+        return state
+
+    @classmethod
+    def from_state_dict(cls, state: dict[str, Any]) -> EpisodeReplay:
+        return cls(
+            started=bool(state["started"]),
+            seed=state["seed"],
+            generator=state["generator"],
+            generator_seed=state["generator_seed"],
+            actions=[int(action) for action in state["actions"]],
+        )
+
+
+def _plain(value: Any) -> Any:
+    """`value` (a bit generator's state) with its NumPy arrays and scalars as Python
+    lists and numbers, which a checkpoint keeps and a bit generator takes back."""
+    if isinstance(value, dict):
+        return {key: _plain(item) for key, item in value.items()}
+    if isinstance(value, np.ndarray | np.generic):
+        return value.tolist()
+    return value
