@@ -9,6 +9,7 @@ its current episode as a replay (`EpisodeReplay`).
 
 from __future__ import annotations
 
+import array
 import dataclasses
 import pickle
 import warnings
@@ -43,7 +44,8 @@ class GymnasiumEnv:
         self.env = env
         self._name = name
         self._pickles_state = pickles_its_state(env)
-        self._episode = EpisodeReplay()
+        # The episode is kept where a checkpoint cannot pickle the environment's state.
+        self._episode = None if self._pickles_state and _pickles(env) else EpisodeReplay()
         try:
             self.observation_layout: ObservationLayout = observation_layout(
                 env.observation_space, observation_images
@@ -84,7 +86,9 @@ class GymnasiumEnv:
                 env_bytes = pickle.dumps(self.env)
             except Exception:  # noqa: BLE001 - any unpicklable environment
                 env_bytes = None
-        episode = None if env_bytes is not None else self._episode.state_dict(self._observation)
+        episode = None
+        if env_bytes is None and self._episode is not None:
+            episode = self._episode.state_dict(self._observation)
         return {
             "env": env_bytes,
             "episode": episode,
@@ -152,7 +156,8 @@ class GymnasiumEnv:
 
     def reset(self, new_game: bool = False) -> np.ndarray:
         """A new episode (every Gymnasium reset is a new game)."""
-        self._episode.start(self.env, self._seed)
+        if self._episode is not None:
+            self._episode.start(self.env, self._seed)
         observation, _ = self.env.reset(seed=self._seed)
         self._seed = None  # seed once; later resets continue the seeded stream
         self._episode_steps = 0
@@ -164,7 +169,8 @@ class GymnasiumEnv:
 
     def step(self, action: int) -> tuple[np.ndarray, float, bool, bool]:
         action = int(action) + self._action_start
-        self._episode.actions.append(action)
+        if self._episode is not None:
+            self._episode.actions.append(action)
         observation, reward, terminated, truncated, _ = self.env.step(action)
         self._episode_steps += 1
         self.frames += 1
@@ -214,14 +220,14 @@ class EpisodeReplay:
     and every action since. Played again on a newly made environment, they reach the same
     state wherever the environment's randomness is its `np_random` (Box2D's and MuJoCo's
     physics are deterministic); the observation reached is checked against the one saved.
-    Kept for every environment (an action appended per step), saved for those whose
-    pickle does not keep their state."""
+    Kept for the environments whose pickle does not keep their state (an action appended
+    per step: 8 bytes)."""
 
     started: bool = False
     seed: int | None = None
     generator: dict[str, Any] | None = None  # np.random.BitGenerator.state
     generator_seed: int | None = None  # gymnasium's np_random_seed
-    actions: list[int] = dataclasses.field(default_factory=list)
+    actions: array.array = dataclasses.field(default_factory=lambda: array.array("q"))
 
     def start(self, env: gym.Env, seed: int | None) -> None:
         """A new episode: `env` about to be reset with `seed`."""
@@ -231,15 +237,16 @@ class EpisodeReplay:
         self.seed = seed
         self.generator = None if generator is None else _plain(generator.bit_generator.state)
         self.generator_seed = getattr(unwrapped, "_np_random_seed", None)
-        self.actions = []
+        self.actions = array.array("q")
 
     def restore_generator(self, env: gym.Env) -> None:
         """`env`'s `np_random` as it was before the episode's reset."""
         if self.generator is None:
             return
-        kind = getattr(np.random, str(self.generator["bit_generator"]), None)
+        name = str(self.generator["bit_generator"])
+        kind = getattr(np.random, name, None)
         if not (isinstance(kind, type) and issubclass(kind, np.random.BitGenerator)):
-            raise EnvError(f"unknown random generator in the checkpoint: {kind!r}")
+            raise EnvError(f"unknown random generator in the checkpoint: {name!r}")
         bit_generator = kind()
         bit_generator.state = self.generator
         env.unwrapped.np_random = np.random.Generator(bit_generator)
@@ -250,10 +257,14 @@ class EpisodeReplay:
         and plain values)."""
         import torch  # kept out of the environment workers' imports
 
-        state = dataclasses.asdict(self)
-        state["actions"] = torch.tensor(self.actions, dtype=torch.int64)
-        state["observation"] = torch.from_numpy(observation.copy())
-        return state
+        return {
+            "started": self.started,
+            "seed": self.seed,
+            "generator": self.generator,
+            "generator_seed": self.generator_seed,
+            "actions": torch.from_numpy(np.array(self.actions, dtype=np.int64)),
+            "observation": torch.from_numpy(observation.copy()),
+        }
 
     @classmethod
     def from_state_dict(cls, state: dict[str, Any]) -> EpisodeReplay:
@@ -262,8 +273,16 @@ class EpisodeReplay:
             seed=state["seed"],
             generator=state["generator"],
             generator_seed=state["generator_seed"],
-            actions=[int(action) for action in state["actions"]],
+            actions=array.array("q", state["actions"].tolist()),
         )
+
+
+def _pickles(env: gym.Env) -> bool:
+    try:
+        pickle.dumps(env)
+    except Exception:  # noqa: BLE001 - any unpicklable environment
+        return False
+    return True
 
 
 def _plain(value: Any) -> Any:
