@@ -21,10 +21,20 @@ def lunar_lander() -> gym.Env:
     return gym.make("LunarLander-v3")
 
 
+def ale_pong() -> gym.Env:
+    """ale-py's own Gymnasium environment (EzPickle too), with sticky actions: its emulator
+    draws from a generator of its own, which the episode's replay restores as well."""
+    import ale_py
+
+    gym.register_envs(ale_py)
+    return gym.make("ALE/Pong-v5", obs_type="grayscale")
+
+
 MAKERS = {
     "ezpickle": lambda: gym.wrappers.TimeLimit(EzDrift(), max_episode_steps=40),
     "unpicklable": lambda: Locked(),
     "lunar_lander": lunar_lander,
+    "ale_pong": ale_pong,
 }
 
 
@@ -48,24 +58,24 @@ def through_a_checkpoint(state: dict[str, Any]) -> dict[str, Any]:
 
 
 @pytest.mark.parametrize("name", sorted(MAKERS))
-@pytest.mark.parametrize("saved_after", [37, "an episode's end"])
+@pytest.mark.parametrize("saved_after", ["37 steps", "an episode's end", "37 steps more"])
 def test_an_environment_that_does_not_pickle_its_state_resumes_exactly(name, saved_after) -> None:
     make = MAKERS[name]
-    actions = np.random.default_rng(4).integers(0, 3 if name != "lunar_lander" else 4, 600)
     first = GymnasiumEnv(make(), seed=11)
-    if saved_after == "an episode's end":
-        played = 0
+    actions = np.random.default_rng(4).integers(0, first.num_actions, 5000)
+    played = 0
+    if saved_after != "37 steps":  # to the first episode's end
         while not (played and first.game_ended):
             play(first, [int(actions[played])])
             played += 1
-    else:
-        played = saved_after
-        play(first, [int(action) for action in actions[:played]])
+    if saved_after != "an episode's end":  # 37 steps into an episode, the first or the next
+        play(first, [int(action) for action in actions[played : played + 37]])
+        played += 37
     state = through_a_checkpoint(first.state_dict())
     assert state["env"] is None and state["episode"] is not None  # nothing pickled that lies
     second = GymnasiumEnv(make(), seed=11)  # as resume makes it: new, from the config
     second.load_state_dict(state)
-    rest = [int(action) for action in actions[played:]]
+    rest = [int(action) for action in actions[played : played + 600]]
     assert play(second, rest) == play(first, rest)  # across episode ends: the same stream
 
 

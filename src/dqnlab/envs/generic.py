@@ -227,6 +227,7 @@ class EpisodeReplay:
     seed: int | None = None
     generator: dict[str, Any] | None = None  # np.random.BitGenerator.state
     generator_seed: int | None = None  # gymnasium's np_random_seed
+    emulator: bytes | None = None  # ale-py's emulator with its RNG (`ALE/...` ids)
     actions: array.array = dataclasses.field(default_factory=lambda: array.array("q"))
 
     def start(self, env: gym.Env, seed: int | None) -> None:
@@ -237,10 +238,18 @@ class EpisodeReplay:
         self.seed = seed
         self.generator = None if generator is None else _plain(generator.bit_generator.state)
         self.generator_seed = getattr(unwrapped, "_np_random_seed", None)
+        # ale-py's environments reset and act with the emulator's own generator too.
+        ale: Any = unwrapped
+        self.emulator = ale.clone_state(include_rng=True).serialize() if _is_ale(ale) else None
         self.actions = array.array("q")
 
     def restore_generator(self, env: gym.Env) -> None:
-        """`env`'s `np_random` as it was before the episode's reset."""
+        """`env`'s `np_random` (and an emulator's generator) as before the episode's reset."""
+        if self.emulator is not None:
+            from ale_py import ALEState  # read from its own bytes: no pickle
+
+            ale: Any = env.unwrapped
+            ale.restore_state(ALEState(self.emulator))
         if self.generator is None:
             return
         name = str(self.generator["bit_generator"])
@@ -262,6 +271,7 @@ class EpisodeReplay:
             "seed": self.seed,
             "generator": self.generator,
             "generator_seed": self.generator_seed,
+            "emulator": self.emulator,
             "actions": torch.from_numpy(np.array(self.actions, dtype=np.int64)),
             "observation": torch.from_numpy(observation.copy()),
         }
@@ -273,8 +283,13 @@ class EpisodeReplay:
             seed=state["seed"],
             generator=state["generator"],
             generator_seed=state["generator_seed"],
+            emulator=state.get("emulator"),
             actions=array.array("q", state["actions"].tolist()),
         )
+
+
+def _is_ale(unwrapped: gym.Env) -> bool:
+    return type(unwrapped).__module__.startswith("ale_py") and hasattr(unwrapped, "clone_state")
 
 
 def _pickles(env: gym.Env) -> bool:
