@@ -22,6 +22,7 @@ optuna = pytest.importorskip(
 from optuna.storages.journal import JournalFileBackend, JournalStorage  # noqa: E402
 from optuna.trial import TrialState  # noqa: E402
 
+from dqnlab.cli import tune as cli_tune  # noqa: E402
 from dqnlab.config import resolve_config  # noqa: E402
 from dqnlab.errors import DqnlabError  # noqa: E402
 from dqnlab.run.rundir import prepare_run_dir  # noqa: E402
@@ -30,7 +31,13 @@ from dqnlab.run.train import train as real_train  # noqa: E402
 from dqnlab.tune import trials as trials_module  # noqa: E402
 from dqnlab.tune.driver import shares, tune  # noqa: E402
 from dqnlab.tune.space import DEFAULT_SPACE, suggest  # noqa: E402
-from dqnlab.tune.study import STUDY_NAME, TunePlan, open_study, trial_run_dir  # noqa: E402
+from dqnlab.tune.study import (  # noqa: E402
+    STUDY_NAME,
+    TunePlan,
+    check_study_dir,
+    open_study,
+    trial_run_dir,
+)
 from tests.helpers import dqnlab_main  # noqa: E402
 
 CPU = torch.device("cpu")
@@ -84,6 +91,49 @@ def test_a_trial_below_the_median_is_pruned_at_its_first_evaluation(
     assert states == [TrialState.COMPLETE, TrialState.COMPLETE, TrialState.PRUNED]
     assert [step for number, step in seen if number == 2] == [100]  # stopped there
     assert study.trials[2].value == 1.0 and study.best_trial.value == 32.0  # the last mean
+
+
+@pytest.mark.parametrize(("objective", "value"), [("best", 40.0), ("last", 30.0)])
+def test_a_runs_value_is_its_best_or_its_last_evaluation(
+    tmp_path: Path, monkeypatch, objective: str, value: float
+) -> None:
+    monkeypatch.setattr(trials_module, "train", _fake_train({0: [10.0, 40.0, 30.0]}, []))
+    study = optuna.create_study(direction="maximize")
+    plan = TunePlan(**{**TINY.__dict__, "objective": objective})
+    assert trials_module.run_trial(study, study.ask(), tmp_path, plan, CPU) == TrialState.COMPLETE
+    assert study.trials[0].value == value
+
+
+def test_the_objective_follows_the_network_the_final_evaluation_plays(
+    tmp_path: Path, capsys, monkeypatch
+) -> None:
+    assert cli_tune._objective(None, "classic", {}, "CartPole-v1") == "best"  # classic keeps it
+    last = {"final_eval_network": "last"}
+    assert cli_tune._objective(None, "classic", last, "CartPole-v1") == "last"
+    assert cli_tune._objective("last", "classic", {}, "CartPole-v1") == "last"
+    status, err = dqnlab_main(
+        capsys, monkeypatch, "tune", "--env", "CartPole-v1", "--trials", "1", "--steps", "300",
+        "--objective", "peak", "--study-dir", str(tmp_path / "s"),
+    )  # fmt: skip
+    assert status == 2 and err.strip() == (
+        "dqnlab: error: --objective 'peak' is not one of: best, last"
+    )
+    assert not (tmp_path / "s").exists()
+
+
+def test_a_study_from_before_the_objective_carries_on_with_the_last_evaluation(
+    tmp_path: Path,
+) -> None:
+    study_dir = tmp_path / "study"
+    open_study(study_dir, TINY)  # TINY's objective: "last"
+    record = json.loads((study_dir / "study.json").read_text())
+    del record["objective"]  # as study.json was written before the setting
+    (study_dir / "study.json").write_text(json.dumps(record))
+    assert check_study_dir(study_dir, TINY)
+    with pytest.raises(DqnlabError, match="differs in objective"):
+        check_study_dir(study_dir, TunePlan(**{**TINY.__dict__, "objective": "best"}))
+    # The same command, which gives no --objective, carries it on with its own.
+    assert cli_tune._objective(None, "classic", {}, "CartPole-v1", study_dir) == "last"
 
 
 def test_a_tiny_tune_writes_its_trials_best_preset_and_figures(tmp_path: Path) -> None:

@@ -52,6 +52,13 @@ Seeds = Annotated[
         help="Runs per trial, on the preset's seed and the next ones; the objective is their mean"
     ),
 ]
+Objective = Annotated[
+    str | None,
+    typer.Option(
+        help="best or last: a run's value is its best periodic evaluation's mean or its last "
+        "one's (default: the network its final evaluation plays, final_eval_network)"
+    ),
+]
 StudyDir = Annotated[
     Path | None,
     typer.Option(
@@ -74,6 +81,7 @@ def tune(
     jobs: Jobs = 1,
     seed: SamplerSeed = 0,
     seeds: Seeds = 1,
+    objective: Objective = None,
     study_dir: StudyDir = None,
     device: Device = "auto",
 ) -> None:
@@ -104,9 +112,10 @@ def tune(
     fixed = _with_env_arguments(preset, fixed, env, env_kwargs, wrapper or [])
     searched = load_space(space)
     check_space(searched, preset, fixed, env, steps)
-    plan = TunePlan(env=env, preset=preset, steps=steps, space=searched, fixed=fixed,
-                    evaluations=evaluations, pruner=pruner, seed=seed, seeds=seeds)  # fmt: skip
     study_dir = study_dir or Path("studies") / f"{safe_name(env)}-{preset_label(preset)}"
+    plan = TunePlan(env=env, preset=preset, steps=steps, space=searched, fixed=fixed,
+                    evaluations=evaluations, pruner=pruner, seed=seed, seeds=seeds,
+                    objective=_objective(objective, preset, fixed, env, study_dir))  # fmt: skip
     torch_device = resolve_device(device)
     typer.echo(f"dqnlab: tuning {env} from preset {preset}: {trials} trials of {steps} steps "
                f"into {study_dir}")  # fmt: skip
@@ -130,6 +139,23 @@ def _with_env_arguments(
     if not env_kwargs and not wrappers:
         return fixed
     return {**fixed, "env_kwargs": config.env_kwargs, "env_wrappers": list(config.env_wrappers)}
+
+
+def _objective(
+    objective: str | None, preset: str, fixed: dict, env: str, study_dir: Path | None = None
+) -> str:
+    """--objective; by default the study's own where `study_dir` holds one (so the same
+    command carries on a study begun before the option, whose objective was the last
+    evaluation), else the network the trials' final evaluation plays."""
+    from dqnlab.config import resolve_config
+    from dqnlab.tune.study import OBJECTIVES, recorded_objective
+
+    if objective is None:
+        recorded = None if study_dir is None else recorded_objective(study_dir)
+        return recorded or resolve_config(preset, fixed, env=env).final_eval_network
+    if objective not in OBJECTIVES:
+        raise DqnlabError(f"--objective {objective!r} is not one of: {', '.join(OBJECTIVES)}")
+    return objective
 
 
 def _check_counts(

@@ -48,7 +48,7 @@ def tune(
         for frozen in stale_trials(study, study_dir):
             run_trial(study, optuna.trial.Trial(study, frozen._trial_id), study_dir, plan, device)
         _run_workers(study_dir, plan, shares(trials - len(study.get_trials()), jobs), device)
-    write_outputs(study, study_dir, command)
+    write_outputs(study, study_dir, command, plan.objective)
     return study
 
 

@@ -33,12 +33,15 @@ NOT_IN_PRESET = ("env", "preset")
 MACHINE_SETTINGS = ("threads",)
 
 
-def write_outputs(study: optuna.Study, study_dir: Path, command: str) -> list[Path]:
-    """trials.csv, best.toml (when a trial completed) and the figures; the paths written."""
+def write_outputs(
+    study: optuna.Study, study_dir: Path, command: str, objective: str = "last"
+) -> list[Path]:
+    """trials.csv, best.toml (when a trial completed) and the figures; the paths written.
+    `objective`: the plan's, named in best.toml's header."""
     written = [write_trials_table(study, study_dir)]
     complete = study.get_trials(deepcopy=False, states=(TrialState.COMPLETE,))
     if complete:
-        written.append(write_best_preset(study, study_dir, command))
+        written.append(write_best_preset(study, study_dir, command, objective))
     written += write_figures(study, study_dir)
     return written
 
@@ -73,7 +76,9 @@ def _seed_values(trial: optuna.trial.FrozenTrial) -> str:
     return ";".join(f"{seed}:{value:.6g}" for seed, value in values.items() if value is not None)
 
 
-def write_best_preset(study: optuna.Study, study_dir: Path, command: str) -> Path:
+def write_best_preset(
+    study: optuna.Study, study_dir: Path, command: str, objective: str = "last"
+) -> Path:
     """The best complete trial's settings as its run resolved them (config.toml), every
     setting but the environment, with the study's command and the date in a header."""
     best = study.best_trial
@@ -81,18 +86,20 @@ def write_best_preset(study: optuna.Study, study_dir: Path, command: str) -> Pat
     config = load_run_config(trial_run_dirs(study_dir, best.number, seeds or [0])[0])
     path = study_path(study_dir, BEST_FILE)
     partial = path.with_suffix(".toml.partial")
-    partial.write_text(preset_text(config, best, command))
+    partial.write_text(preset_text(config, best, command, objective))
     partial.replace(path)
     return path
 
 
-def preset_text(config: Config, best: optuna.trial.FrozenTrial, command: str) -> str:
+def preset_text(
+    config: Config, best: optuna.trial.FrozenTrial, command: str, objective: str = "last"
+) -> str:
     """A preset file of `config`, each line with its setting's doc, the searched ones
     marked; its header names the trial, its objective, the command and the date."""
     today = datetime.date.today().isoformat()
     lines = [
-        f"# The best trial of a dqnlab tune study: trial {best.number}, whose last periodic "
-        f"evaluation's mean was {best.value:.4g}.",
+        f"# The best trial of a dqnlab tune study: trial {best.number}, whose {objective} "
+        f"periodic evaluation's mean was {best.value:.4g}.",
         f"# Study: {command}",
         f"# Date: {today}. Train with it: dqnlab train --env ENV --preset {BEST_FILE}",
         f"# Searched: {json.dumps(best.params)}",

@@ -38,16 +38,20 @@ HISTORY_FIGURE = "history.png"
 IMPORTANCES_FIGURE = "importances.png"
 STUDY_NAME = "dqnlab-tune"
 # What must match for a study directory to be carried on (the trial count may grow).
-PLAN_KEYS = ("env", "preset", "steps", "fixed", "space", "evaluations", "pruner", "seeds")
+PLAN_KEYS = (
+    "env", "preset", "steps", "fixed", "space", "evaluations", "pruner", "seeds", "objective"
+)  # fmt: skip
 # What a study.json written before a key existed holds for it.
-PLAN_DEFAULTS = {"seeds": 1}
+PLAN_DEFAULTS = {"seeds": 1, "objective": "last"}
+OBJECTIVES = ("best", "last")
 
 
 @dataclasses.dataclass(frozen=True)
 class TunePlan:
     """What a study searches; every trial is the preset with `fixed`, then its own draw
     from `space`, trained for `steps` agent steps and evaluated `evaluations` times, on
-    `seeds` run seeds (the preset's seed and the next ones), its objective their mean."""
+    `seeds` run seeds (the preset's seed and the next ones), its objective their mean of
+    `objective`: each run's best periodic evaluation's mean, or its last one's."""
 
     env: str
     preset: str
@@ -58,6 +62,7 @@ class TunePlan:
     pruner: str = "median"
     seed: int = 0  # the sampler's
     seeds: int = 1  # runs per trial
+    objective: str = "last"  # OBJECTIVES
 
     def record(self) -> dict[str, Any]:
         """The plan as study.json holds it."""
@@ -70,6 +75,7 @@ class TunePlan:
             "evaluations": self.evaluations,
             "pruner": self.pruner,
             "seeds": self.seeds,
+            "objective": self.objective,
         }
 
 
@@ -93,6 +99,16 @@ def trial_run_dirs(study_dir: Path, number: int, seeds: list[int]) -> list[Path]
     if len(seeds) == 1:
         return [trial_run_dir(study_dir, number)]
     return [trial_run_dir(study_dir, number, seed) for seed in seeds]
+
+
+def recorded_objective(study_dir: Path) -> str | None:
+    """The objective of the study `study_dir` holds (an older study's: the last
+    evaluation), or None where it holds none that can be read."""
+    try:
+        saved = json.loads(study_path(study_dir, STUDY_FILE).read_text())
+    except (OSError, ValueError):
+        return None
+    return str(saved.get("objective", PLAN_DEFAULTS["objective"]))
 
 
 def check_study_dir(study_dir: Path, plan: TunePlan) -> bool:

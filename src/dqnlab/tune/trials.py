@@ -2,9 +2,11 @@
 1) trained as `dqnlab train` trains it, told its periodic evaluations to the pruner, and
 its objective told to the study.
 
-The objective is the mean score of the run's last periodic evaluation (what
-rl-baselines3-zoo reports: the last evaluation's mean, not the best one, which would favour
-lucky peaks); with several seeds, the mean over them, trained one after the other. The
+The objective is the mean score of the run's best periodic evaluation or of its last
+(`TunePlan.objective`: by default the network the run's final evaluation plays,
+`final_eval_network`, so that a study ranks settings by what their runs deliver: `classic`
+keeps its best network; rl-baselines3-zoo, which plays the last, reports the last
+evaluation's mean); with several seeds, the mean over them, trained one after the other. The
 pruner sees the first seed's evaluations alone: Optuna's pruners hold a trial's best value
 so far against the others' at the same step, so a good first seed would shield a bad
 second one whatever steps it is reported at. A trial the pruner stops is stopped as a stop
@@ -128,7 +130,7 @@ def run_trial(
             if isinstance(ended, TrialState):
                 study.tell(trial, state=ended)
                 return ended
-            done = ended
+            done = _objective(ended, plan.objective)
             if plan.seeds > 1:
                 trial.set_user_attr(f"value_seed_{seed}", done)
         values.append(done)
@@ -138,8 +140,8 @@ def run_trial(
 
 def _train_one(
     trial: optuna.trial.Trial, run_dir: Path, config: Config, pruned: bool, device: torch.device
-) -> float | TrialState | DqnlabError:
-    """One run of the trial: its last evaluation's mean, PRUNED, or the error that failed it;
+) -> TrainResult | TrialState | DqnlabError:
+    """One run of the trial: its result, PRUNED, or the error that failed it;
     its evaluations told to the pruner when `pruned`. A run directory that holds the run
     already (a killed tune's) is resumed with the settings it was started with."""
     try:
@@ -162,7 +164,9 @@ def _train_one(
     return _ended(trial, result)
 
 
-def _ended(trial: optuna.trial.Trial, result: TrainResult) -> float | TrialState | DqnlabError:
+def _ended(
+    trial: optuna.trial.Trial, result: TrainResult
+) -> TrainResult | TrialState | DqnlabError:
     if result.interrupted == STOPPED_BY_HOOK:
         return TrialState.PRUNED
     if result.interrupted is not None:
@@ -172,7 +176,13 @@ def _ended(trial: optuna.trial.Trial, result: TrainResult) -> float | TrialState
             f"no periodic evaluation ran in {result.steps} steps (replay_start_steps is "
             "past the last one): give more --steps or search a smaller replay start"
         )
-    return result.evaluations[-1][1]
+    return result
+
+
+def _objective(result: TrainResult, objective: str) -> float:
+    """The run's value: its best periodic evaluation's mean, or its last one's."""
+    means = [mean for _, mean in result.evaluations]
+    return max(means) if objective == "best" else means[-1]
 
 
 def _failed(study: optuna.Study, trial: optuna.trial.Trial, error: DqnlabError) -> TrialState:
