@@ -5,12 +5,17 @@ from __future__ import annotations
 import shlex
 import sys
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
 import typer
 
 from dqnlab.cli.common import ENV_HELP, Device, EnvKwargs, Wrappers, resolve_device
 from dqnlab.errors import DqnlabError
+
+if TYPE_CHECKING:
+    import torch
+
+    from dqnlab.tune.study import TunePlan
 
 Trials = Annotated[
     int,
@@ -59,6 +64,13 @@ Objective = Annotated[
         "one's (default: the network its final evaluation plays, final_eval_network)"
     ),
 ]
+Verify = Annotated[
+    int,
+    typer.Option(
+        help="Then train the best settings and the starting preset on N seeds no trial used "
+        "(10 on), and play each run's best and last networks: verify.csv (docs/tune.md)"
+    ),
+]
 StudyDir = Annotated[
     Path | None,
     typer.Option(
@@ -82,6 +94,7 @@ def tune(
     seed: SamplerSeed = 0,
     seeds: Seeds = 1,
     objective: Objective = None,
+    verify: Verify = 0,
     study_dir: StudyDir = None,
     device: Device = "auto",
 ) -> None:
@@ -90,7 +103,7 @@ def tune(
 
     * `dqnlab tune --env CartPole-v1 --trials 50 --steps 50000`
     * `dqnlab tune --env CartPole-v1 --trials 20 --steps 20000 --space space.toml --jobs 2`
-    * `dqnlab tune --env Acrobot-v1 --trials 20 --steps 100000 --seeds 3`
+    * `dqnlab tune --env Acrobot-v1 --trials 20 --steps 100000 --seeds 3 --verify 5`
 
     A killed tune is carried on by the same command: its unfinished trial resumes from
     its run's newest checkpoint."""
@@ -106,6 +119,8 @@ def tune(
     from dqnlab.tune.study import BEST_FILE, TunePlan
 
     _check_counts(trials, steps, evaluations, jobs, pruner, seeds)
+    if verify < 0:
+        raise DqnlabError(f"--verify {verify}: must be 0 (no check) or more")
     preset = preset or ("nature" if is_atari(env) else "classic")
     fixed = parse_overrides(set_ or [])
     env_kwargs = parse_pairs(env_kwarg or [], "--env-kwarg")
@@ -122,6 +137,22 @@ def tune(
     command = shlex.join(["dqnlab", *sys.argv[1:]])
     study = run_tune(study_dir, plan, trials, torch_device, command, jobs=jobs)
     _say_result(study, study_dir / BEST_FILE)
+    if verify:
+        _verify(study_dir, plan, verify, torch_device)
+
+
+def _verify(study_dir: Path, plan: TunePlan, count: int, device: torch.device) -> None:
+    """The best settings against the starting preset on `count` new seeds (`tune/verify.py`)."""
+    from dqnlab.tune.verify import VERIFY_TABLE, summary, verification_seeds
+    from dqnlab.tune.verify import verify as run_verify
+
+    seeds = verification_seeds(plan, 0, count)
+    typer.echo(f"dqnlab: checking the best settings and {plan.preset} on {count} new seeds "
+               f"(the preset's seed + {seeds[0]} on) into {study_dir / 'verify'}")  # fmt: skip
+    checked = run_verify(study_dir, plan, count, device)
+    for line in summary(checked, plan.preset):
+        typer.echo(f"dqnlab: {line}")
+    typer.echo(f"dqnlab: every game in {study_dir / VERIFY_TABLE}")
 
 
 def _with_env_arguments(

@@ -9,6 +9,7 @@ Optuna study in a journal file beside it, so that a killed tune carries on.
     STUDY_DIR/best.toml             the best trial's settings as a preset (`outputs.py`)
     STUDY_DIR/trials.csv            one row per trial
     STUDY_DIR/history.png, importances.png   Optuna's figures
+    STUDY_DIR/verify/, verify.csv   with --verify N: the check on new seeds (`verify.py`)
 """
 
 from __future__ import annotations
