@@ -72,7 +72,11 @@ def apply_threads(config: Config) -> int:
     1 before, 0 after): a cause that fits a Pong resume test which failed once in about
     twenty tries on a loaded Xeon, in the last bits of its losses, and never on the AMD
     EPYC, where MKL gives the Nature network's products the same bits at one thread and
-    two (so its choice of count cannot show there)."""
+    two (so its choice of count cannot show there). On the Xeon the count does show: the
+    Nature network's 32 x 3136 by 3136 x 512 product gives other bits at one thread than
+    at two (2026-12-06). Not proven the cause: that Xeon, loaded (1-minute load 3.5-3.7),
+    passed the Pong test 19 times in 19 with MKL's choice left on (bba7fce) and 14 in 14
+    with it off, and MKL left on kept two threads' bits in 3,000 products under load."""
     torch.set_num_threads(config.threads if config.threads > 0 else torch.get_num_threads())
     return torch.get_num_threads()
 
