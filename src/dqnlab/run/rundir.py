@@ -414,7 +414,12 @@ def final_evaluation_path(run_dir: Path) -> Path:
 
 def save_final_evaluation(run_dir: Path, record: dict[str, Any]) -> Path:
     """Write `record` as the run's final evaluation (read by `dqnlab report`)."""
-    path = final_evaluation_path(run_dir)
+    return write_json_file(final_evaluation_path(run_dir), record)
+
+
+def write_json_file(path: Path, record: dict[str, Any]) -> Path:
+    """`record` as an indented JSON file, written whole or not at all (a temporary file
+    replaced), so a kill never leaves half a record for `read_json_file`."""
     temporary = path.with_name(path.name + ".tmp")
     temporary.write_text(json.dumps(record, indent=2) + "\n")
     os.replace(temporary, path)

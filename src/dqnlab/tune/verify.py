@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import csv
 import dataclasses
-import json
 import statistics
 from pathlib import Path
 
@@ -30,7 +29,7 @@ import torch
 from dqnlab.config import DEFAULT_EVALUATION_SEED, Config, resolve_config
 from dqnlab.errors import DqnlabError
 from dqnlab.run.evaluate import final_evaluation, final_evaluation_record
-from dqnlab.run.rundir import prepare_run_dir
+from dqnlab.run.rundir import prepare_run_dir, read_json_file, write_json_file
 from dqnlab.run.train import train
 from dqnlab.tune.study import BEST_FILE, TunePlan, study_path
 from dqnlab.tune.trials import trial_config
@@ -107,15 +106,14 @@ def _checked_run(
         _train(config, run_dir, device, resume)
     checked = []
     for network, path in records.items():
-        if not path.exists():
+        record = read_json_file(path)
+        if record is None:
             result, played = final_evaluation(run_dir, network, None, DEFAULT_EVALUATION_SEED,
                                               device)  # fmt: skip
             record = final_evaluation_record(result, played.config, played.path, played.step,
                                              DEFAULT_EVALUATION_SEED)  # fmt: skip
-            partial = path.with_suffix(".json.partial")
-            partial.write_text(json.dumps(record, indent=2) + "\n")
-            partial.replace(path)
-        scores = json.loads(path.read_text())["scores"]
+            write_json_file(path, record)
+        scores = record["scores"]
         checked.append(Checked(settings, config.seed, network, tuple(map(float, scores))))
     return checked
 
