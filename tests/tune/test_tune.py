@@ -29,7 +29,7 @@ from dqnlab.run.rundir import prepare_run_dir  # noqa: E402
 from dqnlab.run.train import STOPPED_BY_HOOK, TrainResult  # noqa: E402
 from dqnlab.run.train import train as real_train  # noqa: E402
 from dqnlab.tune import trials as trials_module  # noqa: E402
-from dqnlab.tune.driver import shares, tune  # noqa: E402
+from dqnlab.tune.driver import tune  # noqa: E402
 from dqnlab.tune.space import DEFAULT_SPACE, suggest  # noqa: E402
 from dqnlab.tune.study import (  # noqa: E402
     STUDY_NAME,
@@ -38,6 +38,7 @@ from dqnlab.tune.study import (  # noqa: E402
     open_study,
     trial_run_dir,
 )
+from dqnlab.tune.workers import shares  # noqa: E402
 from tests.helpers import dqnlab_main  # noqa: E402
 
 CPU = torch.device("cpu")

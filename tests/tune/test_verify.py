@@ -7,7 +7,13 @@ from __future__ import annotations
 import csv
 import dataclasses
 import json
+import os
+import re
+import shutil
+import signal
+import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -186,3 +192,54 @@ def test_the_command_refuses_a_negative_check_in_one_line(
     )  # fmt: skip
     assert status == 2 and err.strip() == "dqnlab: error: --verify -1: must be 0 (no check) or more"
     assert not (tmp_path / "s").exists()
+
+
+def test_two_jobs_check_each_run_as_one_process_does(tmp_path: Path) -> None:
+    """The runs dealt out to two worker processes (one PyTorch thread each, the study's
+    threads left free) give the same games as the check in one process at one thread."""
+    plan = dataclasses.replace(PLAN, fixed={**TINY.fixed, "final_eval_episodes": 3})
+    tune(tmp_path / "jobs", plan, 1, CPU, "dqnlab tune --env CartPole-v1 --trials 1")
+    shutil.copytree(tmp_path / "jobs", tmp_path / "one")
+    in_jobs = verify(tmp_path / "jobs", plan, 2, CPU, jobs=2)
+    assert in_jobs == verify(tmp_path / "one", plan, 2, CPU, threads=1)
+    assert len(in_jobs) == 8
+    for run_dir in (tmp_path / "jobs" / "verify").iterdir():
+        assert load_run_config(run_dir).threads == 1
+    assert (tmp_path / "jobs" / "verify.csv").read_text() == (
+        tmp_path / "one" / "verify.csv"
+    ).read_text()
+
+
+def test_ctrl_c_stops_both_jobs_of_the_check_in_one_line_and_the_same_command_ends_it(
+    tmp_path: Path,
+) -> None:
+    """SIGINT to the process group, as Ctrl-C sends it, while two jobs train a run each."""
+    study_dir = tmp_path / "study"
+    args = [sys.executable, "-m", "dqnlab", "tune", "--env", "CartPole-v1", "--trials", "1",
+            "--steps", "2500", "--evaluations", "2", "--pruner", "none", "--jobs", "2",
+            "--verify", "1", "--set", "mlp_hidden_sizes=[8]", "--set", "threads=1",
+            "--set", "checkpoint_period_steps=250", "--set", "eval_steps=50",
+            "--set", "heldout_transitions=50", "--set", "final_eval_episodes=3",
+            "--study-dir", str(study_dir)]  # fmt: skip
+    process = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                               start_new_session=True)  # fmt: skip
+    runs = [study_dir / "verify" / name for name in ("tuned-s10", "start-s10")]
+    deadline = time.monotonic() + 120
+    while not all((run / "checkpoints").is_dir() and any((run / "checkpoints").iterdir())
+                  for run in runs):  # fmt: skip
+        assert process.poll() is None and time.monotonic() < deadline, process.communicate()
+        time.sleep(0.05)
+    os.killpg(process.pid, signal.SIGINT)
+    _, err = process.communicate(timeout=120)
+    assert process.returncode == 130, err
+    assert re.fullmatch(
+        r"dqnlab: error: stopped by SIGINT in \S+/verify/(tuned|start)-s10 and "
+        r"\S+/verify/(tuned|start)-s10 each after saving a checkpoint; the same command "
+        r"carries the check on\n",
+        err,
+    ), err
+    assert not (study_dir / "verify.csv").exists()
+    finished = subprocess.run(args, capture_output=True, text=True, timeout=300)
+    assert finished.returncode == 0, finished.stderr
+    with (study_dir / "verify.csv").open() as handle:
+        assert len(list(csv.DictReader(handle))) == 4

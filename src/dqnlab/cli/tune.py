@@ -46,7 +46,10 @@ Evaluations = Annotated[
 Pruner = Annotated[str, typer.Option(help="median (rl-baselines3-zoo's) or none")]
 Jobs = Annotated[
     int,
-    typer.Option(help="Trials trained at once, each in its own process with one PyTorch thread"),
+    typer.Option(
+        help="Trials (and --verify's runs) trained at once, each in its own process with one "
+        "PyTorch thread"
+    ),
 ]
 SamplerSeed = Annotated[
     int, typer.Option(help="Seed of the sampler (TPE); a trial's run seeds are set by --seeds")
@@ -138,18 +141,19 @@ def tune(
     study = run_tune(study_dir, plan, trials, torch_device, command, jobs=jobs)
     _say_result(study, study_dir / BEST_FILE)
     if verify:
-        _verify(study_dir, plan, verify, torch_device)
+        _verify(study_dir, plan, verify, torch_device, jobs)
 
 
-def _verify(study_dir: Path, plan: TunePlan, count: int, device: torch.device) -> None:
-    """The best settings against the starting preset on `count` new seeds (`tune/verify.py`)."""
+def _verify(study_dir: Path, plan: TunePlan, count: int, device: torch.device, jobs: int) -> None:
+    """The best settings against the starting preset on `count` new seeds, `jobs` runs at a
+    time (`tune/verify.py`)."""
     from dqnlab.tune.verify import VERIFY_TABLE, summary, verification_seeds
     from dqnlab.tune.verify import verify as run_verify
 
     seeds = verification_seeds(plan, 0, count)
     typer.echo(f"dqnlab: checking the best settings and {plan.preset} on {count} new seeds "
                f"(the preset's seed + {seeds[0]} on) into {study_dir / 'verify'}")  # fmt: skip
-    checked = run_verify(study_dir, plan, count, device)
+    checked = run_verify(study_dir, plan, count, device, jobs=jobs)
     for line in summary(checked, plan.preset):
         typer.echo(f"dqnlab: {line}")
     typer.echo(f"dqnlab: every game in {study_dir / VERIFY_TABLE}")

@@ -14,7 +14,9 @@ worth shipping where they beat the start on these runs, with the network the run
     STUDY_DIR/verify.csv            one row per run and network
 
 Each run resumes from its newest checkpoint and an evaluation already recorded is not
-played again, so the same command carries a stopped check on.
+played again, so the same command carries a stopped check on. With `jobs` > 1 the runs are
+dealt out in turn among that many worker processes (`workers.py`), one PyTorch thread each
+unless `threads` is fixed, as the study's trials are.
 """
 
 from __future__ import annotations
@@ -22,6 +24,8 @@ from __future__ import annotations
 import csv
 import dataclasses
 import statistics
+import sys
+from multiprocessing.queues import SimpleQueue
 from pathlib import Path
 
 import torch
@@ -33,6 +37,7 @@ from dqnlab.run.rundir import prepare_run_dir, read_json_file, write_json_file
 from dqnlab.run.train import train
 from dqnlab.tune.study import BEST_FILE, TunePlan, study_path
 from dqnlab.tune.trials import trial_config
+from dqnlab.tune.workers import STOPPED, run_workers
 
 VERIFY_DIR = "verify"
 VERIFY_TABLE = "verify.csv"
@@ -58,14 +63,18 @@ class Checked:
 
 
 class VerifyStopped(DqnlabError):
-    """SIGINT or SIGTERM stopped a run of the check after its checkpoint."""
+    """SIGINT or SIGTERM stopped a run of the check after its checkpoint (with `jobs`, one
+    run in each job)."""
 
-    def __init__(self, signal_name: str, run_dir: Path) -> None:
+    def __init__(self, signal_name: str, *run_dirs: Path) -> None:
+        where = " and ".join(map(str, run_dirs))
+        each = " each" if len(run_dirs) > 1 else ""
         super().__init__(
-            f"stopped by {signal_name} in {run_dir} after saving a checkpoint; the same "
+            f"stopped by {signal_name} in {where}{each} after saving a checkpoint; the same "
             "command carries the check on"
         )
         self.exit_status = 130 if signal_name == "SIGINT" else 143
+        self.signal_name, self.run_dirs = signal_name, run_dirs
 
 
 def verification_seeds(plan: TunePlan, base_seed: int, count: int) -> list[int]:
@@ -75,25 +84,58 @@ def verification_seeds(plan: TunePlan, base_seed: int, count: int) -> list[int]:
 
 
 def verify(
-    study_dir: Path, plan: TunePlan, count: int, device: torch.device, threads: int | None = None
+    study_dir: Path,
+    plan: TunePlan,
+    count: int,
+    device: torch.device,
+    threads: int | None = None,
+    jobs: int = 1,
 ) -> list[Checked]:
-    """Train and play the check's runs (those done are kept), write verify.csv, and return
-    every network's games, tuned settings first."""
+    """Train and play the check's runs (those done are kept), `jobs` at a time; write
+    verify.csv, and return every network's games, tuned settings first."""
     best = study_path(study_dir, BEST_FILE)
     if not best.exists():
         raise DqnlabError(f"--verify: {best} does not exist (no trial of the study completed)")
-    start = trial_config(plan, {}, threads)
+    if jobs < 1:
+        raise DqnlabError(f"--jobs {jobs}: at least one")
+    start = trial_config(plan, {}, 1 if threads is None and jobs > 1 else threads)
     # best.toml holds the machine settings at their defaults: the check runs as the trials ran
     machine = {"threads": start.threads, **plan.fixed}
     tuned = resolve_config(str(best), machine, env=plan.env, total_steps=plan.steps)
+    runs = [
+        (
+            settings,
+            dataclasses.replace(config, seed=seed),
+            study_dir / VERIFY_DIR / f"{settings}-s{seed}",
+        )
+        for settings, config in zip(SETTINGS, (tuned, start), strict=True)
+        for seed in verification_seeds(plan, start.seed, count)
+    ]
+    if jobs > 1:  # each job trains and plays its runs; this process reads their records
+        _run_jobs([runs[k::jobs] for k in range(min(jobs, len(runs)))], device)
     checked = []
-    for settings, config in zip(SETTINGS, (tuned, start), strict=True):
-        for seed in verification_seeds(plan, start.seed, count):
-            run_dir = study_dir / VERIFY_DIR / f"{settings}-s{seed}"
-            run = dataclasses.replace(config, seed=seed)
-            checked += _checked_run(settings, run, run_dir, device)
+    for settings, config, run_dir in runs:
+        checked += _checked_run(settings, config, run_dir, device)
     write_table(study_path(study_dir, VERIFY_TABLE), checked)
     return checked
+
+
+def _run_jobs(shares: list[list[tuple[str, Config, Path]]], device: torch.device) -> None:
+    """Each share of the runs in its own process; stopped by a signal, the check stops in
+    one line naming each job's run."""
+    stopped = run_workers(_job, [(share, str(device)) for share in shares], carried_on="check")
+    if stopped:
+        raise VerifyStopped(stopped[0][0], *(run_dir for _, run_dir in stopped))
+
+
+def _job(runs: list[tuple[str, Config, Path]], device: str, stops: SimpleQueue) -> None:
+    """A worker of the check: its runs trained and played one after the other."""
+    try:
+        for settings, config, run_dir in runs:
+            _checked_run(settings, config, run_dir, torch.device(device))
+    except VerifyStopped as stop:
+        stops.put((stop.signal_name, stop.run_dirs[0]))
+        sys.exit(STOPPED)
 
 
 def _checked_run(
