@@ -120,7 +120,8 @@ def test_bad_values_say_what_is_wrong(pair: str, message: str) -> None:
 def test_unknown_preset_lists_the_accepted_ones() -> None:
     accepted = (
         "c51, classic, der, double, drq_epsilon, dueling, iqn, machado, nature, prioritized, "
-        "qrdqn, rainbow, seed-paper, tuned/Acrobot-v1, tuned/CartPole-v1, tuned/MountainCar-v0"
+        "qrdqn, rainbow, seed-paper, tuned/Acrobot-v1, tuned/CartPole-v1, tuned/LunarLander-v3, "
+        "tuned/MountainCar-v0"
     )
     with pytest.raises(ConfigError, match=f"accepted: {accepted}"):
         load_preset("natur")

@@ -14,7 +14,7 @@ def test_lists(tmp_path: Path) -> None:
     assert presets.stdout.split() == [
         "c51", "classic", "der", "double", "drq_epsilon", "dueling", "iqn", "machado",
         "nature", "prioritized", "qrdqn", "rainbow", "seed-paper", "tuned/Acrobot-v1",
-        "tuned/CartPole-v1", "tuned/MountainCar-v0",
+        "tuned/CartPole-v1", "tuned/LunarLander-v3", "tuned/MountainCar-v0",
     ]  # fmt: skip
     nature = dqnlab("presets", "nature")
     assert "learning_rate = 0.00025" in nature.stdout
