@@ -73,6 +73,12 @@ def pinned_digests() -> dict[str, str]:
 
     torch.set_num_threads(1)
     config = resolve_config("nature", env="pong", **PIN_SETTINGS)
+    try:  # denormals flushed as training flushes them (the pinned commit had no such mode)
+        from dqnlab.run.denormals import apply_denormals
+    except ImportError:
+        pass
+    else:
+        assert apply_denormals(config) == config.flush_denormals
     state = TrainingState(config, torch.device("cpu"))
     for _ in range(STEPS):
         state.advance()

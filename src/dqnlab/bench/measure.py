@@ -24,6 +24,7 @@ from dqnlab import __version__
 from dqnlab.algorithm.agent import Agent
 from dqnlab.algorithm.minibatch import Batch
 from dqnlab.algorithm.replay import ReplayMemory
+from dqnlab.run.denormals import flushes_everywhere
 from dqnlab.run.state import TIMED_PARTS, TrainingState
 
 
@@ -50,6 +51,7 @@ def machine_figures(device: torch.device) -> dict[str, Any]:
     return {
         "device": str(device),
         "threads": torch.get_num_threads(),
+        "flush_denormals": flushes_everywhere(),
         "cpu_count": psutil.cpu_count(),
         "dqnlab": __version__,
         "torch": torch.__version__,

@@ -11,6 +11,7 @@ from dqnlab.bench.cleanrl import CleanRLPeer, prepare_cleanrl, run_cleanrl_dqn
 from dqnlab.bench.sb3 import peer_available, run_sb3_dqn
 from dqnlab.config import Config
 from dqnlab.errors import DqnlabError
+from dqnlab.run.denormals import denormals_kept
 
 
 def prepare_peers(
@@ -42,10 +43,11 @@ def peer_round(
     measured; None for a peer not asked for."""
     sb3_run = None
     if sb3:
-        sb3_run = run_sb3_dqn(
-            config.env, steps, learning_starts, config.seed, str(device),
-            epsilon_decay_steps=learning_starts,
-        )  # fmt: skip
+        with denormals_kept():  # SB3 as its users run it
+            sb3_run = run_sb3_dqn(
+                config.env, steps, learning_starts, config.seed, str(device),
+                epsilon_decay_steps=learning_starts,
+            )  # fmt: skip
     cleanrl_run = None
     if cleanrl is not None:
         cleanrl_run = run_cleanrl_dqn(cleanrl, config, steps, learning_starts, device)

@@ -38,6 +38,7 @@ from dqnlab.bench.measure import fill_replay, machine_figures, measure_training,
 from dqnlab.config import Config, resolve_config
 from dqnlab.envs.spaces import ObservationLayout, observation_layout
 from dqnlab.errors import ConfigError
+from dqnlab.run.denormals import denormals_kept
 from dqnlab.run.state import TrainingState
 
 if TYPE_CHECKING:
@@ -164,7 +165,8 @@ def training_against_sb3(
         for _ in range(rounds):
             classic_runs.append(measure_training(state, steps))  # a frame is a step here
             if peers:
-                sb3_runs.append(run_sb3_classic(state.config, steps, device))
+                with denormals_kept():  # SB3 as its users run it
+                    sb3_runs.append(run_sb3_classic(state.config, steps, device))
     finally:
         state.close()
     classic = float(np.mean([steps_per_second for steps_per_second, _ in classic_runs]))

@@ -18,6 +18,16 @@ app = typer.Typer(
     "networks, the stop checkpoint, the GPU path.",
 )
 
+
+@app.callback()
+def _arithmetic() -> None:
+    """dqnlab's runs flush denormals to zero (`flush_denormals`, on by default): so do its
+    measurements; peers run in-process keep IEEE's gradual underflow (`denormals_kept`)."""
+    from dqnlab.run.denormals import set_flush_denormals
+
+    set_flush_denormals(True)
+
+
 # Options the subcommands share; each gives its own default.
 Env = Annotated[str, typer.Option(help="Atari game to measure")]
 Steps = Annotated[

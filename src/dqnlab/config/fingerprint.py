@@ -16,7 +16,7 @@ RESUMABLE_CHANGES = (
     "total_steps", "compile_update", "checkpoint_period_minutes", "checkpoint_period_steps",
     "checkpoints_kept", "on_checkpoint_error", "eval_networks_kept", "replay_storage",
     "replay_compression", "heldout_transitions", "update_graph", "periodic_eval_workers",
-    "final_eval_network", "final_eval_after_training", "threads",
+    "final_eval_network", "final_eval_after_training", "threads", "flush_denormals",
     "preset",  # a record of where the settings came from, not a setting of the training
 )  # fmt: skip
 

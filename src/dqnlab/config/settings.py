@@ -269,6 +269,14 @@ class Config:
         "faster and neither holds (a resume then says so). No effect on the CPU, whose "
         "operations repeat bit for bit at a given thread count (`threads`)",
     )
+    flush_denormals: bool = _setting(
+        True,
+        "On the CPU, float results below 1.2e-38 (denormal) flushed to zero in every PyTorch "
+        "thread (the processor's flush-to-zero and denormals-are-zero modes): an optimizer's "
+        "averages of a weight whose gradient stays zero otherwise stick there for good, and "
+        "x86 computes on them tens of times slower (CartPole's classic 30% faster, the same "
+        "weights; docs/benchmark.md). false: IEEE's gradual underflow",
+    )
     threads: int = _setting(
         0,
         "PyTorch threads of a training process (torch.set_num_threads); 0: PyTorch's "

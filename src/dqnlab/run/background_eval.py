@@ -45,6 +45,7 @@ from dqnlab.envs import make_env
 from dqnlab.envs.pool import process_context
 from dqnlab.errors import DqnlabError
 from dqnlab.run import rundir
+from dqnlab.run.denormals import apply_denormals
 from dqnlab.run.lockstep import torch_threads
 from dqnlab.run.play import EvaluationResult, play
 
@@ -308,6 +309,7 @@ def _worker(connection: Connection, lifeline: Connection, config: Config) -> Non
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     threading.Thread(target=_exit_with, args=(lifeline,), daemon=True).start()
     torch.set_num_threads(1)
+    apply_denormals(config)  # as the training process computes
     try:
         make_env(config, training=False, seed=0).close()
     except Exception:  # noqa: BLE001 - sent to the training process, which raises it

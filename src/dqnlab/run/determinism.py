@@ -27,6 +27,7 @@ import os
 import torch
 
 from dqnlab.config import Config
+from dqnlab.run.denormals import apply_denormals
 
 # cuBLAS's documented workspace setting for reproducible results (CUDA's cuBLAS guide,
 # "Results reproducibility"); PyTorch refuses deterministic matrix products without it.
@@ -76,8 +77,12 @@ def apply_threads(config: Config) -> int:
     Nature network's 32 x 3136 by 3136 x 512 product gives other bits at one thread than
     at two (2026-12-06). Not proven the cause: that Xeon, loaded (1-minute load 3.5-3.7),
     passed the Pong test 19 times in 19 with MKL's choice left on (bba7fce) and 14 in 14
-    with it off, and MKL left on kept two threads' bits in 3,000 products under load."""
+    with it off, and MKL left on kept two threads' bits in 3,000 products under load.
+
+    Then every thread of the pool flushes denormals or not, as `flush_denormals` says
+    (`denormals.py`)."""
     torch.set_num_threads(config.threads if config.threads > 0 else torch.get_num_threads())
+    apply_denormals(config)
     return torch.get_num_threads()
 
 

@@ -17,6 +17,7 @@ from dqnlab.config import Config
 from dqnlab.envs import is_atari, make_env
 from dqnlab.errors import DqnlabError
 from dqnlab.run import exported, rundir
+from dqnlab.run.denormals import apply_denormals
 from dqnlab.run.lockstep import play_games
 from dqnlab.run.play import EvaluationResult
 
@@ -150,6 +151,7 @@ def final_evaluation(
         raise DqnlabError(f"num_envs {num_envs} must be positive")
     network = load_evaluated_agent(run_dir, checkpoint, seed, device, settings)
     config = network.config
+    apply_denormals(config)  # the network computes as it did in training
     count = episodes if episodes is not None else config.final_eval_episodes
     result = play_games(
         network.agent,
