@@ -3,6 +3,8 @@ sets it from its settings, and why (an optimizer's averages stick at denormal va
 
 from __future__ import annotations
 
+import subprocess
+import sys
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -40,6 +42,33 @@ def test_every_thread_flushes_or_none_does() -> None:
     # PyTorch's own switch sets the calling thread alone: the check sees the other half.
     torch.set_flush_denormal(True)
     assert not flushes_everywhere()
+
+
+_BESIDE_ANOTHER_RUNTIME = """
+import ctypes, sys, torch
+torch.set_num_threads(2)
+(torch.ones(1 << 20) * 1.0).sum()  # PyTorch's pool made, its threads computing with denormals
+ctypes.CDLL(sys.argv[1])  # another package's OpenMP runtime, loaded after PyTorch's
+from dqnlab.run.denormals import flushes_everywhere, set_flush_denormals
+print(set_flush_denormals(True), flushes_everywhere(), set_flush_denormals(False),
+      flushes_everywhere())
+"""
+
+
+def test_pytorch_s_pool_is_reached_beside_another_package_s_openmp_runtime() -> None:
+    """pygame's wheel bundles a libgomp of its own (found when the whole suite ran): a
+    parallel region of that runtime would not reach PyTorch's threads. In a new process,
+    whose PyTorch threads have never flushed."""
+    pygame = pytest.importorskip("pygame")
+    bundled = sorted((Path(pygame.__file__).parent.parent / "pygame.libs").glob("libgomp*"))
+    if not bundled:
+        pytest.skip("this pygame brings no OpenMP runtime of its own")
+    done = subprocess.run(
+        [sys.executable, "-c", _BESIDE_ANOTHER_RUNTIME, str(bundled[0])],
+        capture_output=True, text=True, timeout=120,
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.split() == ["True", "True", "False", "False"]
 
 
 def test_the_mode_is_kept_for_a_peer_and_given_back() -> None:

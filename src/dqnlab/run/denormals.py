@@ -24,8 +24,10 @@ theirs, so half of a parallel operation would flush and the other half not. So t
 set inside one parallel region of the OpenMP runtime PyTorch loaded (its `GOMP_parallel`
 entry point, which GNU's libgomp exports, and LLVM's and Intel's runtimes for GNU
 compatibility): every thread of the pool runs it. Threads made later (a larger pool, a
-Python thread) start from the mode of the thread that makes them. Where no OpenMP runtime
-is found, or the processor has no such mode, the mode is left off everywhere.
+Python thread) start from the mode of the thread that makes them. PyTorch's own copy of the
+runtime is tried first (another package may bring its own), and each try is checked by a
+parallel multiplication of denormals. Where PyTorch's pool cannot be reached, or the
+processor has no such mode, the mode is left off.
 """
 
 from __future__ import annotations
@@ -53,14 +55,16 @@ def set_flush_denormals(on: bool) -> bool:
     """Flush denormals to zero (`on`) or compute with them, in the calling thread and every
     thread of PyTorch's OpenMP pool; returns whether they are now flushed everywhere."""
     global _flushing
-    runtime = _openmp_runtime()
-    if runtime is None or not torch.set_flush_denormal(on):
-        torch.set_flush_denormal(False)  # all threads alike: none flushes
-        _flushing = False
+    _flushing = False
+    if not torch.set_flush_denormal(on):  # no such mode on this processor
         return False
-    _in_every_pool_thread(runtime, lambda: torch.set_flush_denormal(on))
-    _flushing = on
-    return on
+    for runtime in _openmp_runtimes():
+        _in_every_pool_thread(runtime, lambda: torch.set_flush_denormal(on))
+        if _flushed_share() == (1.0 if on else 0.0):  # PyTorch's pool was this runtime's
+            _flushing = on
+            return on
+    torch.set_flush_denormal(False)  # PyTorch's pool not reached: leave the mode off
+    return False
 
 
 @contextlib.contextmanager
@@ -75,21 +79,23 @@ def denormals_kept() -> Iterator[None]:
         set_flush_denormals(before)
 
 
-def _openmp_runtime() -> ctypes.CDLL | None:
-    """The OpenMP runtime this process loaded with PyTorch (found in /proc/self/maps)."""
+def _openmp_runtimes() -> Iterator[ctypes.CDLL]:
+    """The OpenMP runtimes this process loaded (from /proc/self/maps), PyTorch's own copy
+    first: another package may bring its own (pygame's wheel bundles a libgomp), whose
+    parallel region would not reach PyTorch's threads."""
     maps = Path("/proc/self/maps")
     if not maps.exists():
-        return None
-    for line in maps.read_text().splitlines():
-        path = line.split()[-1]
-        if Path(path).name.startswith(_OPENMP_LIBRARIES):
-            try:
-                runtime = ctypes.CDLL(path)
-            except OSError:
-                continue
-            if hasattr(runtime, "GOMP_parallel"):
-                return runtime
-    return None
+        return
+    paths = {line.split()[-1] for line in maps.read_text().splitlines() if "/" in line}
+    torch_libraries = Path(torch.__file__).parent / "lib"
+    found = [Path(path) for path in paths if Path(path).name.startswith(_OPENMP_LIBRARIES)]
+    for path in sorted(found, key=lambda path: (path.parent != torch_libraries, str(path))):
+        try:
+            runtime = ctypes.CDLL(str(path))
+        except OSError:
+            continue
+        if hasattr(runtime, "GOMP_parallel"):
+            yield runtime
 
 
 def _in_every_pool_thread(runtime: ctypes.CDLL, action: Callable[[], object]) -> None:
@@ -107,8 +113,13 @@ def _in_every_pool_thread(runtime: ctypes.CDLL, action: Callable[[], object]) ->
 
 
 def flushes_everywhere() -> bool:
-    """Whether a parallel operation flushes denormals in all of its threads (a check: each
-    thread multiplies its share of the smallest denormal number by one; made from its bits,
-    since converting 1e-40 to float32 in a flushing thread would give zero already)."""
+    """Whether a parallel operation flushes denormals in all of its threads."""
+    return _flushed_share() == 1.0
+
+
+def _flushed_share() -> float:
+    """The share of a parallel operation's results that its threads flushed: each thread
+    multiplies its part of the smallest denormal number by one (made from its bits, since
+    converting 1e-40 to float32 in a flushing thread would give zero already)."""
     denormals = torch.ones(1 << 20, dtype=torch.int32).view(torch.float32)
-    return bool(((denormals * 1.0) == 0).all())
+    return float(((denormals * 1.0) == 0).float().mean())
