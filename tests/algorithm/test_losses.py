@@ -88,12 +88,24 @@ def test_n_step_discounts_and_terminals_mask_the_bootstrap() -> None:
     assert y.tolist() == pytest.approx([1.5 + 0.729 * 4.0, 1.5, 1.5 + 0.81 * 4.0])
 
 
-def test_td_priorities_are_the_unclipped_absolute_errors() -> None:
+@pytest.mark.parametrize("sampling", ["prioritized", "user_samplers:Mine"])  # a user's reads
+def test_td_priorities_are_the_unclipped_absolute_errors(sampling: str) -> None:
+    online = TableQ([[0.5, 0.0], [0.0, 0.0]])
+    target = TableQ([[0.0, 0.0], [3.0, 0.0]])
+    config = dataclasses.replace(NATURE, replay_sampling=sampling)
+    output = TDLoss(config)(online, target, _batch(rewards=[1.0]))
+    # TD error = 1 + 0.9 * 3 - 0.5 = 3.2: the Huber loss is clipped, the priority not.
+    assert output.priorities is not None
+    assert output.priorities.tolist() == pytest.approx([3.2])
+    assert output.losses.tolist() == pytest.approx([3.2 - 0.5])
+
+
+def test_td_loss_gives_no_priorities_to_uniform_replay() -> None:
+    """The shipped uniform sampler asks for none: the loss does not compute them."""
     online = TableQ([[0.5, 0.0], [0.0, 0.0]])
     target = TableQ([[0.0, 0.0], [3.0, 0.0]])
     output = TDLoss(NATURE)(online, target, _batch(rewards=[1.0]))
-    # TD error = 1 + 0.9 * 3 - 0.5 = 3.2: the Huber loss is clipped, the priority not.
-    assert output.priorities.tolist() == pytest.approx([3.2])
+    assert NATURE.replay_sampling == "uniform" and output.priorities is None
     assert output.losses.tolist() == pytest.approx([3.2 - 0.5])
 
 

@@ -9,7 +9,12 @@ import math
 import pytest
 import torch
 
-from dqnlab.algorithm.optim import OPTIMIZER_NAMES, DeepMindRMSprop, build_optimizer
+from dqnlab.algorithm.optim import (
+    OPTIMIZER_NAMES,
+    AdamKernelStep,
+    DeepMindRMSprop,
+    build_optimizer,
+)
 
 LR = 0.00025
 DECAY = 0.95
@@ -324,3 +329,70 @@ def test_foreach_is_chosen_for_cuda_parameters_and_kept_by_copies() -> None:
     torch.save(DeepMindRMSprop(params, foreach=True), saved)
     saved.seek(0)
     assert torch.load(saved, weights_only=False).foreach is True
+
+
+def _adam_pair() -> tuple[list[torch.nn.Parameter], torch.optim.Adam, AdamKernelStep]:
+    """Two copies of three parameters, one stepped by `step`, one by the kernel call."""
+    generator = torch.Generator().manual_seed(1)
+    shapes = [(32, 8), (32,), (5, 32)]
+    params = [torch.nn.Parameter(torch.randn(*s, generator=generator)) for s in shapes]
+    copies = [torch.nn.Parameter(p.detach().clone()) for p in params]
+    reference = torch.optim.Adam(params, lr=2e-3, eps=1e-5, weight_decay=0.01, fused=True)
+    direct = torch.optim.Adam(copies, lr=2e-3, eps=1e-5, weight_decay=0.01, fused=True)
+    return [*params, *copies], reference, AdamKernelStep(direct)
+
+
+def _gradients(params: list[torch.nn.Parameter], seed: int) -> None:
+    generator = torch.Generator().manual_seed(seed)
+    half = len(params) // 2
+    for p, q in zip(params[:half], params[half:], strict=True):
+        p.grad = torch.randn(p.shape, generator=generator)
+        q.grad = p.grad.clone()
+
+
+def _bits(tensors: list[torch.Tensor]) -> list[list[int]]:
+    return [t.detach().reshape(-1).view(torch.int32).tolist() for t in tensors]
+
+
+def test_the_adam_kernel_call_gives_adams_bits_across_a_load() -> None:
+    params, reference, step = _adam_pair()
+    half = len(params) // 2
+    for update in range(12):
+        _gradients(params, update)
+        reference.step()
+        step()
+        if update == 5:  # a load replaces the state's tensors: the next call reads them
+            buffer = io.BytesIO()
+            torch.save(step.optimizer.state_dict(), buffer)
+            buffer.seek(0)
+            step.optimizer.load_state_dict(torch.load(buffer))
+    assert _bits(params[:half]) == _bits(params[half:])
+    for p, q in zip(params[:half], params[half:], strict=True):
+        ours, theirs = reference.state[p], step.optimizer.state[q]
+        assert _bits([ours["exp_avg"], ours["exp_avg_sq"]]) == _bits(
+            [theirs["exp_avg"], theirs["exp_avg_sq"]]
+        )
+        assert ours["step"].item() == theirs["step"].item() == 12
+
+
+def test_the_adam_kernel_call_leaves_what_it_cannot_do_to_step() -> None:
+    """A hook, a parameter without a gradient, or another setting: Adam's own step runs
+    (its hook is called; the gradient-less parameter keeps its weights and has no state)."""
+    params, reference, step = _adam_pair()
+    half = len(params) // 2
+    _gradients(params, 0)
+    reference.step(), step()  # the state exists: later calls may take the kernel path
+    calls = []
+    handle = step.optimizer.register_step_pre_hook(lambda *_: calls.append(1))
+    _gradients(params, 1)
+    reference.step(), step()
+    handle.remove()
+    assert calls == [1]
+    _gradients(params, 2)
+    params[0].grad = params[half].grad = None
+    before = params[half].detach().clone()
+    reference.step(), step()
+    assert torch.equal(params[half], before)
+    assert _bits(params[:half]) == _bits(params[half:])
+    step.optimizer.param_groups[0]["amsgrad"] = True
+    assert step._kernel_tensors() is None

@@ -65,7 +65,8 @@ class TDLoss(Loss):
     """The Nature DQN's loss: per transition, the Huber loss between Q(s, a) and the TD
     target with threshold `td_error_clip`, whose gradient is the clipped TD error (the Lua
     code's clip_delta); half the squared error with td_error_clip = 0. Priorities: |TD
-    error|, unclipped (dqn_zoo's prioritized agent)."""
+    error|, unclipped (dqn_zoo's prioritized agent), except under the shipped uniform
+    replay, which asks for none."""
 
     def __call__(self, online: nn.Module, target: nn.Module, batch: Transitions) -> LossOutput:
         q_taken = online(batch.observations).gather(1, batch.actions.unsqueeze(1)).squeeze(1)
@@ -76,6 +77,8 @@ class TDLoss(Loss):
             losses = F.huber_loss(q_taken, q_target, delta=clip, reduction="none")
         else:
             losses = 0.5 * (q_target - q_taken) ** 2
+        if self.config.replay_sampling == "uniform":  # asks for none: two operations saved
+            return LossOutput(losses, None)
         return LossOutput(losses, (q_target - q_taken.detach()).abs())
 
     def targets(self, online: nn.Module, target: nn.Module, batch: Transitions) -> torch.Tensor:

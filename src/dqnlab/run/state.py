@@ -15,6 +15,7 @@ update every `update_period_steps`, a target copy every `target_update_steps`, t
 
 from __future__ import annotations
 
+import math
 import random
 import shutil
 import sys
@@ -266,7 +267,7 @@ class TrainingState:
             sampled = perf_counter()
             loss, priorities = self.agent.update(batch)
             self.replay.sampler.tell(batch, priorities)
-            if self.check_every_update and not torch.isfinite(loss):
+            if self.check_every_update and not math.isfinite(loss.item()):
                 raise diverged("the loss", f"at step {step}")
             self.loss_sum += loss
             self.losses += 1
