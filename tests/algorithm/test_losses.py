@@ -88,7 +88,8 @@ def test_n_step_discounts_and_terminals_mask_the_bootstrap() -> None:
     assert y.tolist() == pytest.approx([1.5 + 0.729 * 4.0, 1.5, 1.5 + 0.81 * 4.0])
 
 
-@pytest.mark.parametrize("sampling", ["prioritized", "user_samplers:Mine"])  # a user's reads
+# Prioritized replay, and a user's sampler, which may read them whether it asks or not.
+@pytest.mark.parametrize("sampling", ["prioritized", "user_samplers:Mine"])
 def test_td_priorities_are_the_unclipped_absolute_errors(sampling: str) -> None:
     online = TableQ([[0.5, 0.0], [0.0, 0.0]])
     target = TableQ([[0.0, 0.0], [3.0, 0.0]])

@@ -14,6 +14,7 @@ from dqnlab.algorithm.optim import (
     AdamKernelStep,
     DeepMindRMSprop,
     build_optimizer,
+    step_function,
 )
 
 LR = 0.00025
@@ -396,3 +397,10 @@ def test_the_adam_kernel_call_leaves_what_it_cannot_do_to_step() -> None:
     assert _bits(params[:half]) == _bits(params[half:])
     step.optimizer.param_groups[0]["amsgrad"] = True
     assert step._kernel_tensors() is None
+
+
+def test_step_function_calls_adams_kernel_and_other_optimizers_step() -> None:
+    params, _, _ = _adam_pair()
+    assert isinstance(step_function(torch.optim.Adam(params, fused=True)), AdamKernelStep)
+    rmsprop = DeepMindRMSprop(params)
+    assert step_function(rmsprop) == rmsprop.step

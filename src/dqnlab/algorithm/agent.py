@@ -30,7 +30,7 @@ from dqnlab.algorithm.networks import (
     computes_a_function,
     recorded_network_name,
 )
-from dqnlab.algorithm.optim import AdamKernelStep, build_optimizer
+from dqnlab.algorithm.optim import build_optimizer, step_function
 from dqnlab.algorithm.part_generators import (
     attach_generators,
     generator_states,
@@ -149,11 +149,7 @@ class Agent:
     def _build_update(self, compile_update: bool, update_graph: str) -> None:
         """The update as it runs: eager, compiled (`compile_update`), or replayed as a CUDA
         graph (`update_graph`), its inputs staged into buffers that stay put."""
-        self._optimizer_step: Callable[[], object] = (
-            AdamKernelStep(self.optimizer)
-            if isinstance(self.optimizer, torch.optim.Adam)
-            else self.optimizer.step
-        )
+        self._optimizer_step: Callable[[], object] = step_function(self.optimizer)
         if compile_update:
             self._loss_and_backward = torch.compile(self._loss_and_backward)  # type: ignore[method-assign]
             self._optimizer_step = torch.compile(self.optimizer.step)

@@ -181,6 +181,14 @@ def _step_foreach(
     torch._foreach_addcdiv_(params, grads, denominators, value=-lr)
 
 
+def step_function(optimizer: torch.optim.Optimizer) -> Callable[[], object]:
+    """What an update calls to step `optimizer`: fused Adam's kernel directly
+    (`AdamKernelStep`) for Adam, else the optimizer's own `step`."""
+    if isinstance(optimizer, torch.optim.Adam):
+        return AdamKernelStep(optimizer)
+    return optimizer.step
+
+
 class AdamKernelStep:
     """`optimizer.step()` of a fused `torch.optim.Adam` whose tensors are on the CPU, as the
     one call PyTorch's step ends in (`torch._fused_adam_`, after the step counts are
