@@ -14,7 +14,8 @@ from dqnlab.config.settings import FIELD_NAMES, Config
 RESUMABLE_CHANGES = (
     "logger", "wandb_project",
     "total_steps", "compile_update", "checkpoint_period_minutes", "checkpoint_period_steps",
-    "checkpoints_kept", "on_checkpoint_error", "eval_networks_kept", "replay_storage",
+    "checkpoints_kept", "digest_period_steps", "on_checkpoint_error", "eval_networks_kept",
+    "replay_storage",
     "replay_compression", "heldout_transitions", "update_graph", "periodic_eval_workers",
     "final_eval_network", "final_eval_after_training", "threads", "flush_denormals",
     "preset",  # a record of where the settings came from, not a setting of the training

@@ -323,6 +323,12 @@ class Config:
     )
     checkpoint_period_steps: int = _setting(0, "Agent steps between checkpoints (0: off)")
     checkpoints_kept: int = _setting(2, "Complete checkpoints kept on disk")
+    digest_period_steps: int = _setting(
+        1000,
+        "Agent steps between digests of the online network's weights in digests.csv; a run "
+        "resumed after a kill compares its own with those the killed run wrote past the "
+        "checkpoint and says whether it retraces it (0: off; docs/resuming.md)",
+    )
     on_checkpoint_error: str = _setting(
         "stop", "stop, or continue training when a checkpoint cannot be written"
     )

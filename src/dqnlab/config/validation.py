@@ -95,7 +95,8 @@ def _validate_ranges(config: Config) -> None:
     non_negative = (
         "seed", "noop_max_frames", "max_episode_frames", "reward_clip", "td_error_clip",
         "epsilon_decay_steps", "eval_max_episode_frames", "final_eval_max_episode_frames",
-        "checkpoint_period_steps", "heldout_transitions", "priority_epsilon", "eval_period_steps",
+        "checkpoint_period_steps", "digest_period_steps", "heldout_transitions", "priority_epsilon",
+        "eval_period_steps",
         "priority_exponent", "max_gradient_norm", "periodic_eval_workers", "threads",
     )  # fmt: skip
     for name in non_negative:

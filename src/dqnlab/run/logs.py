@@ -67,7 +67,7 @@ class RunLogger:
         )
         for name, path, fields, kept_up_to in files:
             if kept_up_to is not None and path.exists():
-                _truncate_after(path, kept_up_to)
+                truncate_after(path, kept_up_to)
             if path.exists():
                 _extend_header(path, fields)
             new = not path.exists()
@@ -144,7 +144,7 @@ class RunLogger:
             self.wandb_log.close()
 
 
-def _truncate_after(path: Path, step: int) -> None:
+def truncate_after(path: Path, step: int) -> None:
     """Keep the header and the rows whose step is at most `step`; drop a torn last line."""
     lines = path.read_text().splitlines(keepends=True)
     kept = lines[:1]

@@ -68,6 +68,7 @@ else:  # pragma: no cover
 CONFIG_FILE = "config.toml"
 EPISODES_FILE = "episodes.csv"
 EVALUATIONS_FILE = "evaluations.csv"
+DIGESTS_FILE = "digests.csv"  # run/digests.py
 TENSORBOARD_DIR = "tensorboard"
 FINAL_EVALUATION_FILE = "final_evaluation.json"
 CHECKPOINTS_DIR = "checkpoints"
@@ -98,6 +99,10 @@ def episodes_path(run_dir: Path) -> Path:
 
 def evaluations_path(run_dir: Path) -> Path:
     return run_dir / EVALUATIONS_FILE
+
+
+def digests_path(run_dir: Path) -> Path:
+    return run_dir / DIGESTS_FILE
 
 
 def tensorboard_dir(run_dir: Path) -> Path:

@@ -7,6 +7,7 @@ besides learning.
     every eval period:   evaluate; keep the best, worst, evaluated nets  (_evaluate)
                          (or submit it to `background_eval`, recorded when it returns)
     every 1,000 steps:   check for NaN, log loss and frames/s, progress  (_report_progress)
+    every digest period: a digest of the weights, compared after a kill  (digests.py)
     when due:            write a complete training checkpoint            (_checkpoint)
     on SIGINT/SIGTERM:   checkpoint, then stop                           (StopRequests)
     when on_evaluation says so after an evaluation: checkpoint, then stop (`dqnlab tune`)
@@ -49,6 +50,7 @@ from dqnlab.run.determinism import (
     resume_threads,
     resume_warning,
 )
+from dqnlab.run.digests import WeightDigests
 from dqnlab.run.lease import RunLease, held
 from dqnlab.run.logs import RunLogger
 from dqnlab.run.play import EvaluationResult
@@ -182,14 +184,7 @@ class TrainingLoop:
         else:
             rundir.write_run_config(run_dir, config)
         check_disk(run_dir, self.state.replay)
-        resume_step = self.state.steps if resume else None
-        self.logger = RunLogger(
-            run_dir,
-            tensorboard=tensorboard,
-            resume_step=resume_step,
-            evaluations_resume_step=pending[0]["step"] - 1 if pending else None,
-            wandb_log=WandbLog(run_dir, config, resume_step) if uses_wandb(config) else None,
-        )
+        self._open_logs(tensorboard, self.state.steps if resume else None, pending)
         frames = self.state.frames
         self.saved_mark = self.state.replay.mark()
         self.saved_time = time.monotonic()
@@ -209,6 +204,21 @@ class TrainingLoop:
                 config, self._network_payload, self._record_evaluation, config.periodic_eval_workers
             )
             self.background.resubmit(pending)
+
+    def _open_logs(
+        self, tensorboard: bool, resume_step: int | None, pending: list[dict[str, Any]]
+    ) -> None:
+        """The run's CSV files, TensorBoard (and W&B) and the weights' digests, each
+        carried on from `resume_step` (None: a new run)."""
+        config, run_dir = self.config, self.run_dir
+        self.logger = RunLogger(
+            run_dir,
+            tensorboard=tensorboard,
+            resume_step=resume_step,
+            evaluations_resume_step=pending[0]["step"] - 1 if pending else None,
+            wandb_log=WandbLog(run_dir, config, resume_step) if uses_wandb(config) else None,
+        )
+        self.digests = WeightDigests(rundir.digests_path(run_dir), resume_step)
 
     def run(self) -> TrainResult:
         config, state = self.config, self.state
@@ -230,6 +240,10 @@ class TrainingLoop:
                     self.background.record_done()
                 if self._crosses(first, step, PROGRESS_PERIOD_STEPS):
                     self._report_progress(step)
+                if config.digest_period_steps and self._crosses(
+                    first, step, config.digest_period_steps
+                ):
+                    _say(self.digests.record(step, state.agent.online))
                 if first <= config.replay_start_steps <= step:
                     self.learning_since = (time.perf_counter(), state.frames)
                 stopping = stop.signal_name is not None or self.hook_stop
@@ -432,6 +446,7 @@ class TrainingLoop:
             # No periodic evaluation happened (a very short run): the final network stands in.
             rundir.save_network(best, self._network_payload(state.steps, float("nan")))
         self.logger.close()
+        self.digests.close()
         state.close()
         return TrainResult(
             steps=state.steps,
