@@ -72,7 +72,7 @@ class WeightDigests:
             self.diverged_at = step
             self.expected.clear()
             return (
-                f"warning: this resumed run is not retracing the run that was killed: its "
+                f"dqnlab: warning: this resumed run is not retracing the run that was killed: its "
                 f"online network at step {step:,} differs from the one the killed run "
                 f"recorded there ({self.path.name}). The checkpoint loaded exactly, so "
                 "something outside it changed the arithmetic since: the processor, the "
@@ -82,7 +82,7 @@ class WeightDigests:
         if not self.expected:
             steps = "the one step" if self.compared == 1 else f"all {self.compared} steps"
             return (
-                f"the resumed run retraces the killed run: the same weights at {steps} it "
+                f"dqnlab: the resumed run retraces the killed run: the same weights at {steps} it "
                 f"recorded past the checkpoint ({self.path.name})"
             )
         return None
