@@ -44,7 +44,6 @@ class WeightDigests:
         self.path = path
         self.expected: dict[int, str] = {}  # the killed run's digests past the checkpoint
         self.compared = 0
-        self.diverged_at: int | None = None
         if resume_step is not None and path.exists():
             self.expected = {
                 step: digest for step, digest in _read(path).items() if step > resume_step
@@ -65,12 +64,11 @@ class WeightDigests:
         self._writer.writerow((step, digest))
         self._handle.flush()  # a SIGKILL loses nothing written before it
         expected = self.expected.pop(step, None)
-        if expected is None or self.diverged_at is not None:
+        if expected is None:
             return None
         self.compared += 1
         if digest != expected:
-            self.diverged_at = step
-            self.expected.clear()
+            self.expected.clear()  # said once: from here the run has a course of its own
             return (
                 f"dqnlab: warning: this resumed run is not retracing the run that was killed: its "
                 f"online network at step {step:,} differs from the one the killed run "
