@@ -1,17 +1,20 @@
 """The `threads` setting: the CPU's arithmetic depends on the thread count, so a run records
 its count in every checkpoint and a resume takes it back (or says it will not be exact);
-a resume where the arithmetic itself differs (another processor) says so; and a warning
-when the cores are already busy."""
+a resume where the arithmetic itself differs (another processor) says so; a warning
+when the cores are already busy; and MKL's vector math warmed up before a run computes."""
 
 from __future__ import annotations
 
+import ctypes
 import os
 import signal
 import subprocess
 import sys
+import threading
 from collections.abc import Iterator
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 
@@ -190,3 +193,56 @@ def test_a_run_leaves_mkl_no_choice_of_its_thread_count(threads: int) -> None:
     assert before == "1", "MKL's default changed: this test no longer shows anything"
     assert after == "0"
     assert count == str(threads or 2)
+
+
+# MKL's single-precision vector math entry points (Fortran names, exported by PyTorch's
+# x86 pip builds), with the mode argument: 0x2 is VML_HA, the default accuracy.
+VML_NAMES = {"log": "LN"}
+
+
+def test_the_warmed_up_functions_are_the_ones_pytorch_computes_with_mkl() -> None:
+    # If a PyTorch release stops calling MKL for one of them, the list should say so.
+    library = ctypes.CDLL(os.path.join(os.path.dirname(torch.__file__), "lib", "libtorch_cpu.so"))
+    if not hasattr(library, "VMSSQRT_"):
+        pytest.skip("this PyTorch build has no MKL vector math to compare with")
+    values = torch.linspace(0.05, 0.95, 10_000)
+    size, mode = ctypes.c_int(values.numel()), ctypes.c_longlong(0x2)
+    for name in determinism.VECTOR_MATH_FUNCTIONS:
+        expected = np.empty(values.numel(), dtype=np.float32)
+        vml = getattr(library, f"VMS{VML_NAMES.get(name, name.upper())}_")
+        vml(ctypes.byref(size), values.numpy().ctypes.data_as(ctypes.c_void_p),
+            expected.ctypes.data_as(ctypes.c_void_p), ctypes.byref(mode))  # fmt: skip
+        assert np.array_equal(getattr(torch, name)(values).numpy(), expected), name
+
+
+def test_the_warm_up_calls_each_function_alone_then_in_every_thread(monkeypatch) -> None:
+    calls: list[tuple[str, int]] = []
+    for name in determinism.VECTOR_MATH_FUNCTIONS:
+        function = getattr(torch, name)
+        monkeypatch.setattr(
+            torch, name, lambda t, n=name, f=function: calls.append((n, t.numel())) or f(t)
+        )
+    torch.set_num_threads(2)
+    determinism.warm_up_vector_math()
+    grain = determinism.VECTOR_MATH_GRAIN
+    assert [name for name, _ in calls[::2]] == list(determinism.VECTOR_MATH_FUNCTIONS)
+    assert [name for name, _ in calls[1::2]] == list(determinism.VECTOR_MATH_FUNCTIONS)
+    assert all(size < grain for _, size in calls[::2])  # one piece: the calling thread alone
+    assert all(size >= 2 * 2 * grain for _, size in calls[1::2])  # pieces for both threads
+
+
+def test_set_threads_warms_up_a_pool_only_where_it_grows(monkeypatch) -> None:
+    warmed: list[int] = []
+    real = determinism.warm_up_vector_math
+    monkeypatch.setattr(
+        determinism, "warm_up_vector_math", lambda: warmed.append(torch.get_num_threads()) or real()
+    )
+
+    def counts() -> None:  # a Python thread of its own: an OpenMP pool of its own
+        for count in (1, 2, 1, 2, 2):
+            determinism.set_threads(count)
+
+    thread = threading.Thread(target=counts)
+    thread.start()
+    thread.join()
+    assert warmed == [1, 2]

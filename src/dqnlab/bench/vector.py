@@ -36,6 +36,7 @@ from dqnlab.bench.peers import peer_round
 from dqnlab.config import CHOICES, Config, resolve_config
 from dqnlab.errors import ConfigError
 from dqnlab.run.concurrent import training_state
+from dqnlab.run.determinism import set_threads
 from dqnlab.run.state import TrainingState
 
 # The replay the update is timed on: only its minibatch matters.
@@ -97,7 +98,7 @@ def _states(
             _fill(state.replay, np.random.default_rng(seed))
             state.steps = config.replay_start_steps + config.epsilon_decay_steps
             measure_training(state, whole_rounds(100, count))  # warm-up
-            torch.set_num_threads(threads)  # as it was: an actor thread's state changed it
+            set_threads(threads)  # as it was: an actor thread's state changed it
             states[row_key(count, mode)] = state
     return states
 
@@ -202,11 +203,11 @@ def _rounds(
             # An actor thread's state runs its learner with fewer threads, set for the
             # whole process when it started: each state runs with its own count.
             figures[f"{key}_threads"] = _threads_of(state, threads)
-            torch.set_num_threads(figures[f"{key}_threads"])
+            set_threads(figures[f"{key}_threads"])
             frames_per_second, shares = measure_training(
                 state, whole_rounds(figures["steps"], len(state.envs))
             )
-            torch.set_num_threads(threads)
+            set_threads(threads)
             if "wait" in state.seconds:
                 shares["learner_waiting"] = state.seconds["wait"] / state.seconds["total"]
             measured.frames_per_second[key].append(frames_per_second)

@@ -46,6 +46,7 @@ from dqnlab.envs.pool import process_context
 from dqnlab.errors import DqnlabError
 from dqnlab.run import rundir
 from dqnlab.run.denormals import apply_denormals
+from dqnlab.run.determinism import warm_up_vector_math
 from dqnlab.run.lockstep import torch_threads
 from dqnlab.run.play import EvaluationResult, play
 
@@ -310,6 +311,7 @@ def _worker(connection: Connection, lifeline: Connection, config: Config) -> Non
     threading.Thread(target=_exit_with, args=(lifeline,), daemon=True).start()
     torch.set_num_threads(1)
     apply_denormals(config)  # as the training process computes
+    warm_up_vector_math()  # and its first calls to MKL's vector math, as there
     try:
         make_env(config, training=False, seed=0).close()
     except Exception:  # noqa: BLE001 - sent to the training process, which raises it

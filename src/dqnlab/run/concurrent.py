@@ -44,6 +44,7 @@ from torch import nn
 
 from dqnlab.algorithm.replay import ReplayMemory
 from dqnlab.config import Config, derive_seeds
+from dqnlab.run.determinism import set_threads
 from dqnlab.run.state import FinishedGame, TrainingState, choose_actions
 
 # PyTorch's intra-op thread count is per thread (OpenMP's): on CPU the actor's batched
@@ -205,10 +206,10 @@ class ActorLearnerState(TrainingState):
         if not self.threaded:
             if not self.pending:
                 if self._threads is not None:
-                    torch.set_num_threads(ACTOR_THREADS)
+                    set_threads(ACTOR_THREADS)
                 self.pending.append(self._act_round(self._snapshot_for(self.actor_steps)))
                 if self._threads is not None:
-                    torch.set_num_threads(self._threads[1])
+                    set_threads(self._threads[1])
             return self.pending.popleft()
         with self._lock:
             while not self.pending:
@@ -280,12 +281,12 @@ class ActorLearnerState(TrainingState):
             self._thread.start()
             self._threads_set.wait()  # MKL's count is the process's: the learner's last
         if self._threads is not None:
-            torch.set_num_threads(self._threads[1])
+            set_threads(self._threads[1])
 
     def _actor(self) -> None:
         try:
             if self._threads is not None:
-                torch.set_num_threads(ACTOR_THREADS)  # OpenMP's count: this thread's alone
+                set_threads(ACTOR_THREADS)  # OpenMP's count: this thread's alone
             self._threads_set.set()
             while True:
                 with self._lock:
@@ -413,6 +414,6 @@ class ActorLearnerState(TrainingState):
         if self._thread is not None:
             self._thread.join()
         if self._threads is not None:
-            torch.set_num_threads(self._threads[0])
+            set_threads(self._threads[0])
             self._threads = None
         super().close()

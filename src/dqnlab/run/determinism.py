@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import hashlib
 import os
+import threading
 
 import torch
 
@@ -32,6 +33,15 @@ from dqnlab.run.denormals import apply_denormals
 # cuBLAS's documented workspace setting for reproducible results (CUDA's cuBLAS guide,
 # "Results reproducibility"); PyTorch refuses deterministic matrix products without it.
 CUBLAS_WORKSPACE = ":4096:8"
+# PyTorch's float kernels that call MKL's vector math (VML), and the elements of one piece
+# of their work (`grain_size` in ATen's UnaryOpsKernel.cpp): `warm_up_vector_math`.
+VECTOR_MATH_FUNCTIONS = (
+    "sqrt", "exp", "log", "log10", "sin", "cos", "tan", "asin", "acos", "atan", "tanh",
+    "erf", "erfc", "erfinv",
+)  # fmt: skip
+VECTOR_MATH_GRAIN = 2048
+# Per Python thread (each has an OpenMP pool of its own): the pool threads warmed up so far.
+_warmed = threading.local()
 
 
 def use_deterministic_algorithms(config: Config, device: torch.device) -> None:
@@ -70,20 +80,59 @@ def apply_threads(config: Config) -> int:
     reproducible results ask for it off (oneMKL developer guide, "Reproducibility
     Conditions"). A run left at `threads = 0` therefore computes as one set to the same
     count. Until 2026-12-05 such runs kept MKL's choice on (checked: `mkl_serv_get_dynamic`
-    1 before, 0 after): a cause that fits a Pong resume test which failed once in about
-    twenty tries on a loaded Xeon, in the last bits of its losses, and never on the AMD
-    EPYC, where MKL gives the Nature network's products the same bits at one thread and
-    two (so its choice of count cannot show there). On the Xeon the count does show: the
-    Nature network's 32 x 3136 by 3136 x 512 product gives other bits at one thread than
-    at two (2026-12-06). Not proven the cause: that Xeon, loaded (1-minute load 3.5-3.7),
-    passed the Pong test 19 times in 19 with MKL's choice left on (bba7fce) and 14 in 14
-    with it off, and MKL left on kept two threads' bits in 3,000 products under load.
+    1 before, 0 after). On the Xeon the count shows: the Nature network's 32 x 3136 by
+    3136 x 512 product gives other bits at one thread than at two (2026-12-06). It was
+    suspected of a Pong resume test's rare failure on a loaded Xeon, but MKL left on kept
+    two threads' bits in 3,000 products under load; the cause found is MKL's vector math
+    (`warm_up_vector_math`).
 
     Then every thread of the pool flushes denormals or not, as `flush_denormals` says
-    (`denormals.py`)."""
+    (`denormals.py`), and makes its first calls to MKL's vector math
+    (`warm_up_vector_math`)."""
     torch.set_num_threads(config.threads if config.threads > 0 else torch.get_num_threads())
     apply_denormals(config)
+    warm_up_vector_math()
     return torch.get_num_threads()
+
+
+def set_threads(count: int) -> None:
+    """`torch.set_num_threads(count)`, and MKL's vector math warmed up where the calling
+    thread's OpenMP pool grows past the threads already warmed (`warm_up_vector_math`):
+    GNU's OpenMP keeps a pool's threads when it shrinks and reuses them when it grows
+    again (checked by their thread ids), so only a new thread needs it."""
+    torch.set_num_threads(count)
+    if count > getattr(_warmed, "threads", 0):
+        warm_up_vector_math()
+
+
+def warm_up_vector_math() -> None:
+    """Call each of MKL's vector math functions that PyTorch's CPU kernels use, once in
+    every thread of the calling thread's OpenMP pool, and throw the results away.
+
+    PyTorch computes sqrt, exp, log, the trigonometric functions, tanh and erf of a float
+    tensor with MKL's vector math library (VML; checked on torch 2.15: the same bits as
+    VML's high-accuracy mode), cutting it into pieces of `VECTOR_MATH_GRAIN` elements
+    spread over the pool. On the Xeon (2026-12-06), under load, a pool thread's first
+    such call sometimes returned square roots about 12 bits exact (relative errors up to
+    3e-4, where the usual ones are within an ulp): the second half of a 3,136-element sqrt,
+    the part the second thread computes, in 3 processes of about 60; the next call in the
+    same process gave the usual bits, every time. The optimizers take a square root at every
+    update (RMSProp, Adam), so the first update of a process could move the weights
+    otherwise than in a process where that call went right: the likely cause of the Pong
+    resume test that failed once in about twenty tries on a loaded Xeon, in the last bits
+    of its losses, and the cause of the arithmetic fingerprint that a loaded resume found
+    changed on the same machine (which is how it was found).
+    So every process makes those first calls here, before it computes anything it keeps.
+    """
+    threads = torch.get_num_threads()
+    # Half a piece: the calling thread alone. Two per thread: every thread one range.
+    alone = torch.linspace(0.25, 0.75, VECTOR_MATH_GRAIN // 2)
+    spread = torch.linspace(0.25, 0.75, 2 * VECTOR_MATH_GRAIN * threads)
+    for name in VECTOR_MATH_FUNCTIONS:
+        function = getattr(torch, name)
+        function(alone)  # MKL's first call in the process, no other thread inside it
+        function(spread)  # then the first call of each thread of the pool
+    _warmed.threads = max(threads, getattr(_warmed, "threads", 0))
 
 
 def resume_threads(config: Config, device: torch.device, trained_with: int | None) -> str | None:
@@ -95,7 +144,7 @@ def resume_threads(config: Config, device: torch.device, trained_with: int | Non
     if device.type != "cpu" or trained_with is None or trained_with == now:
         return None
     if config.threads == 0:
-        torch.set_num_threads(trained_with)
+        set_threads(trained_with)
         return (
             f"dqnlab: resuming with the {trained_with} PyTorch thread(s) the run trained with "
             f"(this process had {now}): the CPU's arithmetic depends on the count"
@@ -110,8 +159,11 @@ def resume_threads(config: Config, device: torch.device, trained_with: int | Non
 def arithmetic_fingerprint() -> str:
     """A digest of what the update's arithmetic is made of, computed by this process at its
     thread count on fixed inputs: a convolution forward and its weight gradient (oneDNN), a
-    matrix product (MKL), a reduction and an elementwise root (ATen). Equal where the
-    libraries take the same code paths; a few milliseconds."""
+    matrix product (MKL), a reduction and an elementwise root (MKL's vector math). Equal
+    where the libraries take the same code paths; a few milliseconds. The vector math is
+    warmed up first, as a run does at its start, so that a process that computed nothing
+    before gets the same digest (`warm_up_vector_math`)."""
+    warm_up_vector_math()
     generator = torch.Generator().manual_seed(0)
     images = torch.rand(2, 4, 84, 84, generator=generator)
     kernel = (torch.rand(32, 4, 8, 8, generator=generator) - 0.5).requires_grad_()

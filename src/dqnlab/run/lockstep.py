@@ -23,7 +23,7 @@ from dqnlab.algorithm.agent import Agent
 from dqnlab.config import Config, derive_seeds
 from dqnlab.envs import is_atari
 from dqnlab.envs.pool import FINISHED, NEW_EPISODE, RUNNING, EnvGroup, EnvWorkers, Lockstep
-from dqnlab.run.determinism import usable_cores
+from dqnlab.run.determinism import set_threads, usable_cores
 from dqnlab.run.play import EvaluationResult
 
 
@@ -117,11 +117,11 @@ def default_num_envs(episodes: int) -> int:
 @contextlib.contextmanager
 def torch_threads(count: int) -> Iterator[None]:
     before = torch.get_num_threads()
-    torch.set_num_threads(count)
+    set_threads(count)
     try:
         yield
     finally:
-        torch.set_num_threads(before)
+        set_threads(before)
 
 
 def play_games(
