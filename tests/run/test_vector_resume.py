@@ -81,6 +81,9 @@ def test_three_environments_killed_and_resumed_are_bit_identical(tmp_path: Path,
     assert_same_run(reference, resumed)
 
 
+# Slow (CI's time): the stop signal's checkpoint and resume with one environment are
+# test_resume.py's, and three environments killed and resumed the test above's.
+@pytest.mark.slow
 def test_a_stop_signal_checkpoints_three_environments_and_resumes(tmp_path: Path) -> None:
     args = VARIANTS["cartpole"]
     reference, resumed = tmp_path / "reference", tmp_path / "resumed"
