@@ -115,8 +115,9 @@ def warm_up_vector_math() -> None:
     spread over the pool. On the Xeon (2026-12-06), under load, a pool thread's first
     such call sometimes returned square roots about 12 bits exact (relative errors up to
     3e-4, where the usual ones are within an ulp): the second half of a 3,136-element sqrt,
-    the part the second thread computes, in 3 processes of about 60; the next call in the
-    same process gave the usual bits, every time. The optimizers take a square root at every
+    the part the second thread computes, in 3 of 98 fresh processes beside two trainings
+    (load about 6; none in 134 more beside other load); the next call in the same process
+    gave the usual bits, every time. The optimizers take a square root at every
     update (RMSProp, Adam), so the first update of a process could move the weights
     otherwise than in a process where that call went right: the likely cause of the Pong
     resume test that failed once in about twenty tries on a loaded Xeon, in the last bits
