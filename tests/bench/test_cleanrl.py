@@ -211,6 +211,9 @@ def test_the_bench_alternates_cleanrl_with_dqnlab_and_gives_the_ratio(
     assert "peer_train_frames_per_second" not in figures  # no --peers: SB3 not run
 
 
+# Slow (CI's time): the alternation with CleanRL is the test above's, the num_envs rounds
+# with a peer tests/bench/test_vector.py's.
+@pytest.mark.slow
 def test_cleanrl_takes_its_turn_in_the_num_envs_rounds(
     checkout: Path, venv: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:

@@ -23,9 +23,10 @@ TINY = [
 ]  # fmt: skip
 
 
-# drq_epsilon's augmentation draws are its own; der's parts are Rainbow's, resumed in
-# test_resume.py: der runs under the slow marker, for CI's time.
-@pytest.mark.parametrize("preset", [pytest.param("der", marks=pytest.mark.slow), "drq_epsilon"])
+# Both under the slow marker, for CI's time: the augmentation's state round-trips in
+# tests/algorithm/test_augmentation.py, Rainbow's parts in tests/algorithm/.
+@pytest.mark.slow
+@pytest.mark.parametrize("preset", ["der", "drq_epsilon"])
 def test_an_atari100k_preset_killed_and_resumed_is_bit_identical(tmp_path: Path, preset) -> None:
     args = [*TINY, "--preset", preset]
     reference, resumed = tmp_path / "reference", tmp_path / "resumed"

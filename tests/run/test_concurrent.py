@@ -251,8 +251,9 @@ def assert_same_run(reference: Path, resumed: Path) -> None:
 @pytest.mark.parametrize(
     "name",
     # "background evaluations" is one environment with the actor too: "one env" alone runs
-    # under the slow marker, for CI's time.
-    [pytest.param(name, marks=pytest.mark.slow) if name == "one env" else name
+    # under the slow marker, for CI's time, and so does "three envs" (several environments
+    # with the actor: test_threads_equal_the_sequential_semantics_bit_for_bit).
+    [pytest.param(name, marks=pytest.mark.slow) if name in ("one env", "three envs") else name
      for name in RESUMED],
 )  # fmt: skip
 def test_a_killed_actor_learner_run_resumes_bit_for_bit(tmp_path: Path, name: str) -> None:

@@ -226,9 +226,17 @@ EZPICKLE = ["--env", "tests.envs.replayed_envs:EzDrift", *CARTPOLE[2:]]
 
 @pytest.mark.parametrize(
     "args",
-    # The nested Dict space with one environment under the slow marker (CI's time): with
-    # three, test_vector_resume.py kills and resumes it in the fast suite.
-    [CARTPOLE, RAINBOW_CARTPOLE, PONG, EZPICKLE, pytest.param(NESTED_DICT, marks=pytest.mark.slow)],
+    # Under the slow marker, for CI's time: the nested Dict space (tests/envs/
+    # test_spaces_pipeline.py trains and resumes every space), the family's parts at once
+    # (each part's state round-trips in tests/algorithm/: prioritized, n-step, noisy, the
+    # optimizers) and the EzPickle environment (tests/envs/test_generic_resume.py).
+    [
+        CARTPOLE,
+        pytest.param(RAINBOW_CARTPOLE, marks=pytest.mark.slow),
+        PONG,
+        pytest.param(EZPICKLE, marks=pytest.mark.slow),
+        pytest.param(NESTED_DICT, marks=pytest.mark.slow),
+    ],
     ids=["cartpole", "rainbow-cartpole", "pong", "ezpickle", "nested-dict"],
 )
 def test_sigkill_at_random_moments_then_resume_is_bit_identical(tmp_path: Path, args) -> None:
@@ -261,6 +269,9 @@ def test_a_stop_signal_checkpoints_and_says_how_to_resume(tmp_path: Path, stop, 
     assert_same_run(reference, resumed)
 
 
+# Slow (CI's time): the store's fallback is test_checkpoints.py's
+# (test_damaged_checkpoint_is_skipped_for_the_previous_one); this is it end to end.
+@pytest.mark.slow
 def test_a_corrupted_newest_checkpoint_falls_back_to_the_previous_one(tmp_path: Path) -> None:
     reference, resumed = tmp_path / "reference", tmp_path / "resumed"
     code, stderr = finish(dqnlab("train", *CARTPOLE, "--run-dir", str(reference)))

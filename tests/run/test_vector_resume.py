@@ -62,10 +62,11 @@ def assert_same_run(reference: Path, resumed: Path) -> None:
     assert tensorboard_steps(resumed) == tensorboard_steps(reference)
 
 
-# The fast suite keeps CartPole and the nested Dict space; Rainbow's parts (resumed with one
-# environment in test_resume.py) and Pong's emulators (likewise) with three environments run
-# under the slow marker, for CI's time.
-SLOW_VARIANTS = ("rainbow-cartpole", "pong")
+# The fast suite keeps CartPole; Rainbow's parts, Pong's emulators (resumed with one
+# environment in test_resume.py) and the nested Dict space (trained and resumed in
+# tests/envs/test_spaces_pipeline.py) with three environments run under the slow marker,
+# for CI's time.
+SLOW_VARIANTS = ("rainbow-cartpole", "pong", "nested-dict")
 
 
 @pytest.mark.parametrize(

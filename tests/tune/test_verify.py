@@ -213,12 +213,14 @@ def test_two_jobs_check_each_run_as_one_process_does(tmp_path: Path) -> None:
 def test_ctrl_c_stops_both_jobs_of_the_check_in_one_line_and_the_same_command_ends_it(
     tmp_path: Path,
 ) -> None:
-    """SIGINT to the process group, as Ctrl-C sends it, while two jobs train a run each."""
+    """SIGINT to the process group, as Ctrl-C sends it, while two jobs train a run each.
+    A checkpoint every 50 steps: the signal goes once both runs have one, long before
+    either can end its 2,500 (every 250 let the faster run finish first once, on CI)."""
     study_dir = tmp_path / "study"
     args = [sys.executable, "-m", "dqnlab", "tune", "--env", "CartPole-v1", "--trials", "1",
             "--steps", "2500", "--evaluations", "2", "--pruner", "none", "--jobs", "2",
             "--verify", "1", "--set", "mlp_hidden_sizes=[8]", "--set", "threads=1",
-            "--set", "checkpoint_period_steps=250", "--set", "eval_steps=50",
+            "--set", "checkpoint_period_steps=50", "--set", "eval_steps=50",
             "--set", "heldout_transitions=50", "--set", "final_eval_episodes=3",
             "--study-dir", str(study_dir)]  # fmt: skip
     process = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
