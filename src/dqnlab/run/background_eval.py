@@ -31,7 +31,7 @@ import threading
 import traceback
 from collections import deque
 from collections.abc import Callable
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from multiprocessing.connection import Connection, wait
 from pathlib import Path
 from typing import Any
@@ -45,8 +45,7 @@ from dqnlab.envs import make_env
 from dqnlab.envs.pool import process_context
 from dqnlab.errors import DqnlabError
 from dqnlab.run import rundir
-from dqnlab.run.denormals import apply_denormals
-from dqnlab.run.determinism import warm_up_vector_math
+from dqnlab.run.determinism import apply_threads
 from dqnlab.run.lockstep import torch_threads
 from dqnlab.run.play import EvaluationResult, play
 
@@ -309,9 +308,7 @@ def _worker(connection: Connection, lifeline: Connection, config: Config) -> Non
     os.setsid()
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     threading.Thread(target=_exit_with, args=(lifeline,), daemon=True).start()
-    torch.set_num_threads(1)
-    apply_denormals(config)  # as the training process computes
-    warm_up_vector_math()  # and its first calls to MKL's vector math, as there
+    apply_threads(replace(config, threads=1))  # one thread, set as a run sets it
     try:
         make_env(config, training=False, seed=0).close()
     except Exception:  # noqa: BLE001 - sent to the training process, which raises it
