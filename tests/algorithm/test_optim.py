@@ -14,6 +14,7 @@ from dqnlab.algorithm.optim import (
     AdamKernelStep,
     DeepMindRMSprop,
     build_optimizer,
+    clip_gradient_norm_,
     step_function,
 )
 
@@ -404,3 +405,37 @@ def test_step_function_calls_adams_kernel_and_other_optimizers_step() -> None:
     assert isinstance(step_function(torch.optim.Adam(params, fused=True)), AdamKernelStep)
     rmsprop = DeepMindRMSprop(params)
     assert step_function(rmsprop) == rmsprop.step
+
+
+def _gradients(scale: float) -> list[torch.nn.Parameter]:
+    generator = torch.Generator().manual_seed(0)
+    params = [torch.nn.Parameter(torch.zeros(shape)) for shape in ((64, 33), (33,), (5, 64))]
+    for param in params:
+        param.grad = torch.randn(param.shape, generator=generator) * scale
+    return params
+
+
+@pytest.mark.parametrize(("scale", "one"), [(1e-3, 0.0), (1.0, 0.0), (50.0, 0.0), (1e-3, math.nan)])
+def test_the_clip_gives_torchs_bits_and_norm(scale: float, one: float) -> None:
+    """Within the bound (1e-3: norm ~0.05), across it (1.0 is ~48, 50.0 ~2400, against 10)
+    and with one NaN among small gradients (PyTorch makes every gradient NaN), as PyTorch's
+    own clip."""
+    ours, theirs = _gradients(scale), _gradients(scale)
+    for params in (ours, theirs):
+        assert params[1].grad is not None
+        params[1].grad[3] = one
+    norm = clip_gradient_norm_(ours, 10.0)
+    expected = torch.nn.utils.clip_grad_norm_(theirs, 10.0)
+    assert torch.equal(norm, expected) or (norm.isnan() and expected.isnan())
+    for a, b in zip(ours, theirs, strict=True):
+        assert a.grad is not None and b.grad is not None
+        assert torch.equal(a.grad.view(torch.int32), b.grad.view(torch.int32))
+
+
+def test_the_clip_leaves_gradients_within_the_bound_unwritten() -> None:
+    params = _gradients(1e-3)
+    versions = [param.grad._version for param in params if param.grad is not None]
+    clip_gradient_norm_(params, 10.0)
+    assert [param.grad._version for param in params if param.grad is not None] == versions
+    clip_gradient_norm_(params, 1e-3)  # beyond it: scaled in place
+    assert all(param.grad._version > v for param, v in zip(params, versions, strict=True))

@@ -30,7 +30,7 @@ from dqnlab.algorithm.networks import (
     computes_a_function,
     recorded_network_name,
 )
-from dqnlab.algorithm.optim import build_optimizer, step_function
+from dqnlab.algorithm.optim import build_optimizer, clip_gradient_norm_, step_function
 from dqnlab.algorithm.part_generators import (
     attach_generators,
     generator_states,
@@ -310,7 +310,7 @@ class Agent:
         self._clear_gradients()
         loss, priorities = self._loss_and_backward(batch, target)
         if self.config.max_gradient_norm > 0:
-            nn.utils.clip_grad_norm_(self.online.parameters(), self.config.max_gradient_norm)
+            clip_gradient_norm_(self.online.parameters(), self.config.max_gradient_norm)
         self._optimizer_step()
         return loss, priorities
 

@@ -181,6 +181,26 @@ def _step_foreach(
     torch._foreach_addcdiv_(params, grads, denominators, value=-lr)
 
 
+def clip_gradient_norm_(parameters: Iterable[torch.Tensor], max_norm: float) -> torch.Tensor:
+    """`torch.nn.utils.clip_grad_norm_(parameters, max_norm)`, the same bits, without its
+    multiplication by one on the CPU: PyTorch scales every gradient by
+    min(max_norm / (norm + 1e-6), 1) even when the minimum is one, so as not to wait for a
+    device to say which; on the CPU nothing waits, and a step whose norm is within bounds
+    skips a pass over every gradient (Rainbow's 6.5M: about 1 ms of a 42 ms update on the
+    Xeon, 2026-12-06). Multiplying by one changes no value (a denormal that it would flush
+    to zero reads as zero in every later operation under `flush_denormals`). A NaN or
+    infinite norm scales, as PyTorch does; so does anything off the CPU or being compiled."""
+    with_gradient = [param for param in parameters if param.grad is not None]
+    gradients = [param.grad for param in with_gradient if param.grad is not None]
+    total_norm = torch.nn.utils.get_total_norm(gradients)
+    on_cpu = all(gradient.device.type == "cpu" for gradient in gradients)
+    if on_cpu and not torch.compiler.is_compiling():
+        if bool(max_norm / (total_norm + 1e-6) >= 1.0):  # the clamped coefficient is one
+            return total_norm
+    torch.nn.utils.clip_grads_with_norm_(with_gradient, max_norm, total_norm)
+    return total_norm
+
+
 def step_function(optimizer: torch.optim.Optimizer) -> Callable[[], object]:
     """What an update calls to step `optimizer`: fused Adam's kernel directly
     (`AdamKernelStep`) for Adam, else the optimizer's own `step`."""
