@@ -194,9 +194,9 @@ def clip_gradient_norm_(parameters: Iterable[torch.Tensor], max_norm: float) -> 
     gradients = [param.grad for param in with_gradient if param.grad is not None]
     total_norm = torch.nn.utils.get_total_norm(gradients)
     on_cpu = all(gradient.device.type == "cpu" for gradient in gradients)
-    if on_cpu and not torch.compiler.is_compiling():
-        if bool(max_norm / (total_norm + 1e-6) >= 1.0):  # the clamped coefficient is one
-            return total_norm
+    no_wait = on_cpu and not torch.compiler.is_compiling()
+    if no_wait and bool(max_norm / (total_norm + 1e-6) >= 1.0):  # the clamped coefficient: 1
+        return total_norm
     torch.nn.utils.clip_grads_with_norm_(with_gradient, max_norm, total_norm)
     return total_norm
 
