@@ -407,7 +407,7 @@ def test_step_function_calls_adams_kernel_and_other_optimizers_step() -> None:
     assert step_function(rmsprop) == rmsprop.step
 
 
-def _gradients(scale: float) -> list[torch.nn.Parameter]:
+def _with_gradients(scale: float) -> list[torch.nn.Parameter]:
     generator = torch.Generator().manual_seed(0)
     params = [torch.nn.Parameter(torch.zeros(shape)) for shape in ((64, 33), (33,), (5, 64))]
     for param in params:
@@ -420,7 +420,7 @@ def test_the_clip_gives_torchs_bits_and_norm(scale: float, one: float) -> None:
     """Within the bound (1e-3: norm ~0.05), across it (1.0 is ~48, 50.0 ~2400, against 10)
     and with one NaN among small gradients (PyTorch makes every gradient NaN), as PyTorch's
     own clip."""
-    ours, theirs = _gradients(scale), _gradients(scale)
+    ours, theirs = _with_gradients(scale), _with_gradients(scale)
     for params in (ours, theirs):
         assert params[1].grad is not None
         params[1].grad[3] = one
@@ -433,7 +433,7 @@ def test_the_clip_gives_torchs_bits_and_norm(scale: float, one: float) -> None:
 
 
 def test_the_clip_leaves_gradients_within_the_bound_unwritten() -> None:
-    params = _gradients(1e-3)
+    params = _with_gradients(1e-3)
     versions = [param.grad._version for param in params if param.grad is not None]
     clip_gradient_norm_(params, 10.0)
     assert [param.grad._version for param in params if param.grad is not None] == versions
