@@ -9,6 +9,7 @@ import math
 import pytest
 import torch
 
+from dqnlab.algorithm import optim
 from dqnlab.algorithm.optim import (
     OPTIMIZER_NAMES,
     AdamKernelStep,
@@ -439,3 +440,15 @@ def test_the_clip_leaves_gradients_within_the_bound_unwritten() -> None:
     assert [param.grad._version for param in params if param.grad is not None] == versions
     clip_gradient_norm_(params, 1e-3)  # beyond it: scaled in place
     assert all(param.grad._version > v for param, v in zip(params, versions, strict=True))
+
+
+def test_a_large_step_runs_in_pieces_eagerly_and_whole_when_compiled(monkeypatch) -> None:
+    """Eagerly, cache-sized pieces (each element sees the same operations); while
+    `torch.compile` traces the step (`compile_update`), whole: Inductor would otherwise
+    select each element's piece by index in its one fused loop (ten times the eager time)."""
+    tensors = tuple(torch.zeros(3 * optim._PIECE) for _ in range(4))
+    pieces = list(optim._cache_sized_pieces(tensors))
+    assert [piece[0].numel() for piece in pieces] == [optim._PIECE] * 3
+    monkeypatch.setattr(torch.compiler, "is_compiling", lambda: True)
+    (whole,) = optim._cache_sized_pieces(tensors)
+    assert all(part is tensor for part, tensor in zip(whole, tensors, strict=True))
